@@ -1,0 +1,116 @@
+"""Pinhole camera with OpenCV conventions.
+
+Pixel (u, v) has its centre at integer coordinates; x right, y down, z forward; units mm.
+A crop box is given in pixel-edge coordinates ``(x0, y0, x1, y1)``: the crop covers the image area from
+edge x0 to edge x1, so a full image is ``(0, 0, W, H)``. :func:`crop_affine` returns the 2x3 matrix for
+``cv2.warpAffine`` and the camera of the crop, consistent with each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics K (3x3), image size and optional OpenCV distortion coefficients."""
+
+    K: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3) or K[2, 2] != 1.0 or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"K must be a 3x3 intrinsic matrix with fx, fy > 0 and K[2,2] = 1, got {K.tolist()}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", np.asarray(self.dist, dtype=np.float64).ravel())
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> PinholeCamera:
+        """Camera with square pixels, the principal point at the image centre and a horizontal FOV."""
+        f = 0.5 * width / np.tan(np.radians(hfov_deg) / 2.0)
+        K = np.array([[f, 0, (width - 1) / 2.0], [0, f, (height - 1) / 2.0], [0, 0, 1.0]])
+        return cls(K, width, height)
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) of camera-frame points (N, 3) (no distortion; z must be > 0)."""
+        p = np.asarray(points, dtype=np.float64)
+        uvw = p @ self.K.T
+        return uvw[:, :2] / uvw[:, 2:3]
+
+    def backproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) of pixels (N, 2) at z-depths (N,)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        z = np.asarray(depth, dtype=np.float64).reshape(-1)
+        x = (uv[:, 0] - self.cx) / self.fx
+        y = (uv[:, 1] - self.cy) / self.fy
+        return np.stack([x * z, y * z, z], axis=-1)
+
+    def rays(self) -> np.ndarray:
+        """Unit-depth ray directions (H, W, 3) through every pixel centre."""
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1)
+
+    def resized(self, width: int, height: int) -> PinholeCamera:
+        """The camera of this image resized to ``width`` x ``height``."""
+        return crop_affine(self, (0.0, 0.0, float(self.width), float(self.height)), (width, height))[1]
+
+    def cropped(self, box: tuple[float, float, float, float], size: tuple[int, int]) -> PinholeCamera:
+        """The camera of the crop ``box`` (pixel edges) resized to ``size`` = (width, height)."""
+        return crop_affine(self, box, size)[1]
+
+    def to_dict(self) -> dict:
+        d = {"K": self.K.tolist(), "width": int(self.width), "height": int(self.height)}
+        if self.dist.size:
+            d["dist"] = self.dist.tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PinholeCamera:
+        K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
+        return cls(K, int(d["width"]), int(d["height"]), np.asarray(d.get("dist", []), dtype=np.float64))
+
+
+def crop_affine(
+    camera: PinholeCamera, box: tuple[float, float, float, float], size: tuple[int, int]
+) -> tuple[np.ndarray, PinholeCamera]:
+    """Warp matrix (2, 3) for ``cv2.warpAffine(img, M, size)`` and the camera of the crop.
+
+    ``box`` = (x0, y0, x1, y1) in pixel-edge coordinates of ``camera``'s image, ``size`` = (width, height)
+    of the output. A pixel centre u maps to ``(u + 0.5 - x0) * s - 0.5`` with ``s = width / (x1 - x0)``.
+    """
+    x0, y0, x1, y1 = (float(b) for b in box)
+    w, h = int(size[0]), int(size[1])
+    if x1 <= x0 or y1 <= y0 or w <= 0 or h <= 0:
+        raise ValueError(f"invalid crop box {box} or size {size}")
+    sx, sy = w / (x1 - x0), h / (y1 - y0)
+    M = np.array([[sx, 0.0, (0.5 - x0) * sx - 0.5], [0.0, sy, (0.5 - y0) * sy - 0.5]])
+    K = camera.K.copy()
+    K[0, 0] *= sx
+    K[0, 1] *= sx
+    K[1, 1] *= sy
+    K[0, 2] = (camera.cx + 0.5 - x0) * sx - 0.5
+    K[1, 2] = (camera.cy + 0.5 - y0) * sy - 0.5
+    return M, PinholeCamera(K, w, h, camera.dist)

@@ -1,0 +1,117 @@
+"""Kinematic chain of an articulated instrument.
+
+Joint variables (radians) are the EndoWrist ones: ``roll`` about the shaft axis, wrist ``pitch``, wrist
+``yaw`` and jaw ``opening`` (each jaw turns by a fixed fraction of it, +-1/2 for a two-jaw tool). Every
+rigid part hangs from its parent by one revolute joint whose angle is a linear combination of the joint
+variables, so one description covers two-jaw graspers, scissors and one-piece tips alike.
+
+The base frame is the shaft frame at zero roll: origin on the shaft axis at the wrist pitch axis, +z along
+the shaft towards the tip. ``forward`` maps the base pose (base-to-camera) and a joint state to every
+part's pose (part-to-camera).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from surftrack.geometry import rotation_about, se3
+
+JOINT_NAMES = ("roll", "pitch", "yaw", "opening")
+
+
+@dataclass(frozen=True)
+class JointState:
+    """The instrument's joint variables, radians."""
+
+    roll: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+    opening: float = 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        return {n: float(getattr(self, n)) for n in JOINT_NAMES}
+
+    @classmethod
+    def from_degrees(cls, **deg: float) -> JointState:
+        unknown = set(deg) - set(JOINT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown joint(s) {sorted(unknown)}; joints are {JOINT_NAMES}")
+        return cls(**{k: float(np.radians(v)) for k, v in deg.items()})
+
+
+@dataclass(frozen=True)
+class PartJoint:
+    """Revolute joint of one part: ``T_parent_part = T(origin) @ Rot(axis, sum_k coeff_k * q_k)``."""
+
+    parent: str | None
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    coefficients: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        bad = set(self.coefficients) - set(JOINT_NAMES)
+        if bad:
+            raise ValueError(f"joint angle refers to unknown joint(s) {sorted(bad)}; joints are {JOINT_NAMES}")
+        if np.linalg.norm(self.axis) < 1e-9:
+            raise ValueError("joint axis must be non-zero")
+
+    def angle(self, q: JointState) -> float:
+        return float(sum(c * getattr(q, k) for k, c in self.coefficients.items()))
+
+    def transform(self, q: JointState) -> np.ndarray:
+        """Pose of the part in its parent's frame (the base frame for the root part)."""
+        return se3(rotation_about(self.axis, self.angle(q)), np.asarray(self.origin, dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Closed interval per joint variable, radians."""
+
+    ranges: dict[str, tuple[float, float]]
+
+    def __post_init__(self) -> None:
+        for name, (lo, hi) in self.ranges.items():
+            if name not in JOINT_NAMES:
+                raise ValueError(f"limit for unknown joint {name!r}; joints are {JOINT_NAMES}")
+            if lo > hi:
+                raise ValueError(f"joint limit for {name!r} has lower {lo} > upper {hi}")
+
+    def contains(self, q: JointState, tol: float = 1e-9) -> bool:
+        return all(lo - tol <= getattr(q, n) <= hi + tol for n, (lo, hi) in self.ranges.items())
+
+    def clip(self, q: JointState) -> JointState:
+        vals = q.as_dict()
+        for n, (lo, hi) in self.ranges.items():
+            vals[n] = float(np.clip(vals[n], lo, hi))
+        return JointState(**vals)
+
+
+class KinematicChain:
+    """Tree of parts linked by :class:`PartJoint`; parts are kept in an order where parents come first."""
+
+    def __init__(self, joints: dict[str, PartJoint]):
+        roots = [n for n, j in joints.items() if j.parent is None]
+        if len(roots) != 1:
+            raise ValueError(f"an instrument needs exactly one root part (no parent), found {roots}")
+        order: list[str] = []
+        pending = dict(joints)
+        while pending:
+            ready = [n for n, j in pending.items() if j.parent is None or j.parent in order]
+            if not ready:
+                raise ValueError(f"parts {sorted(pending)} have unknown parents or form a cycle")
+            for n in ready:
+                order.append(n)
+                del pending[n]
+        self.joints = joints
+        self.order = tuple(order)
+
+    def forward(self, base_pose: np.ndarray, q: JointState) -> dict[str, np.ndarray]:
+        """Pose (4x4, part-to-camera) of every part, for base (shaft at zero roll) pose ``base_pose``."""
+        poses: dict[str, np.ndarray] = {}
+        for name in self.order:
+            j = self.joints[name]
+            parent = np.asarray(base_pose, dtype=np.float64) if j.parent is None else poses[j.parent]
+            poses[name] = parent @ j.transform(q)
+        return poses

@@ -1,0 +1,182 @@
+"""Instruments described in YAML (``configs/instruments/*.yaml``): built-in procedural ones and a user's CAD.
+
+A description names the parts in kinematic order, each with a mesh (a procedural ``builder`` with its
+parameters, or a CAD ``file`` with its ``units``), the revolute joint that carries it, a material,
+extra keypoints and render-only ``attachments`` (the long shaft tube towards the trocar). Joint limits are
+given in degrees. See ``configs/instruments/large_needle_driver.yaml`` for a complete example.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+
+from surftrack.geometry import transform_points
+from surftrack.instruments.kinematics import JOINT_NAMES, JointLimits, JointState, KinematicChain, PartJoint
+from surftrack.instruments.part import Material, Part
+from surftrack.instruments.procedural import build, finish
+from surftrack.paths import configs_dir
+
+UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "inch": 25.4}
+
+
+class InstrumentError(ValueError):
+    """A malformed instrument description; the message names the file and the problem."""
+
+
+@dataclass(eq=False)
+class Attachment:
+    """A render-only mesh rigidly attached to a part (mm, in that part's frame)."""
+
+    part: str
+    mesh: trimesh.Trimesh
+
+
+@dataclass(eq=False)
+class Instrument:
+    """An articulated instrument: rigid parts (parents first), their kinematic chain and joint limits."""
+
+    name: str
+    parts: dict[str, Part]
+    chain: KinematicChain
+    limits: JointLimits
+    description: str = ""
+    aliases: tuple[str, ...] = ()
+    attachments: list[Attachment] = field(default_factory=list)
+    source: Path | None = None
+
+    @property
+    def part_names(self) -> tuple[str, ...]:
+        return self.chain.order
+
+    def forward(self, base_pose: np.ndarray, q: JointState) -> dict[str, np.ndarray]:
+        """Pose (part-to-camera, 4x4) of every part for the base (zero-roll shaft frame) pose."""
+        return self.chain.forward(base_pose, q)
+
+    def keypoints(self, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Camera-frame position of every named keypoint, keyed ``part/keypoint``."""
+        out = {}
+        for pname, part in self.parts.items():
+            for kname, p in part.keypoints.items():
+                out[f"{pname}/{kname}"] = transform_points(poses[pname], p[None])[0]
+        return out
+
+
+def _load_mesh(spec: dict, base: Path, where: str) -> tuple[trimesh.Trimesh, dict[str, np.ndarray]]:
+    if "file" in spec:
+        path = (base / spec["file"]).expanduser()
+        units = spec.get("units")
+        if units not in UNITS_TO_MM:
+            raise InstrumentError(f"{where}: mesh 'units' must be one of {sorted(UNITS_TO_MM)}, got {units!r}")
+        if not path.is_file():
+            raise InstrumentError(f"{where}: mesh file {path} does not exist")
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        except Exception as e:  # trimesh raises many types for unreadable files
+            raise InstrumentError(f"{where}: cannot read mesh {path}: {e}") from None
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise InstrumentError(f"{where}: mesh {path} has no triangles")
+        mesh = mesh.copy()
+        mesh.apply_scale(UNITS_TO_MM[units])
+        return finish(mesh), {}
+    if "builder" in spec:
+        params = {k: v for k, v in spec.items() if k != "builder"}
+        try:
+            return build(spec["builder"], **params)
+        except ValueError as e:
+            raise InstrumentError(f"{where}: {e}") from None
+    raise InstrumentError(f"{where}: a mesh needs either 'builder' or 'file' (+ 'units')")
+
+
+def load_instrument_file(path: str | Path) -> Instrument:
+    """Build an :class:`Instrument` from its YAML description."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise InstrumentError(f"{path}: cannot read instrument description: {e}") from None
+    if not isinstance(doc, dict) or "name" not in doc or not doc.get("parts"):
+        raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
+    limits_deg = doc.get("joint_limits_deg", {})
+    try:
+        limits = JointLimits({k: (float(np.radians(lo)), float(np.radians(hi))) for k, (lo, hi) in limits_deg.items()})
+    except (ValueError, TypeError) as e:
+        raise InstrumentError(f"{path}: joint_limits_deg: {e}") from None
+    parts: dict[str, Part] = {}
+    joints: dict[str, PartJoint] = {}
+    attachments: list[Attachment] = []
+    for i, p in enumerate(doc["parts"]):
+        name = p.get("name") if isinstance(p, dict) else None
+        if not name:
+            raise InstrumentError(f"{path}: part #{i} has no 'name'")
+        if name in parts:
+            raise InstrumentError(f"{path}: part name {name!r} is used twice")
+        where = f"{path}: part {name!r}"
+        mesh, kps = _load_mesh(p.get("mesh", {}), path.parent, where)
+        kps.update({k: np.asarray(v, dtype=np.float64) for k, v in (p.get("keypoints") or {}).items()})
+        j = p.get("joint", {})
+        try:
+            joints[name] = PartJoint(parent=p.get("parent"), origin=tuple(j.get("origin", (0, 0, 0))),
+                                     axis=tuple(j.get("axis", (0, 0, 1))), coefficients=dict(j.get("angle", {})))
+            parts[name] = Part(name, mesh, Material(**(p.get("material") or {})), kps)
+        except (ValueError, TypeError) as e:
+            raise InstrumentError(f"{where}: {e}") from None
+        for k, a in enumerate(p.get("attachments") or []):
+            amesh, _ = _load_mesh(a, path.parent, f"{where} attachment #{k}")
+            attachments.append(Attachment(name, amesh))
+    try:
+        chain = KinematicChain(joints)
+    except ValueError as e:
+        raise InstrumentError(f"{path}: {e}") from None
+    return Instrument(
+        name=str(doc["name"]), parts={n: parts[n] for n in chain.order}, chain=chain, limits=limits,
+        description=str(doc.get("description", "")), aliases=tuple(doc.get("aliases", ())),
+        attachments=attachments, source=path,
+    )
+
+
+def instrument_files() -> dict[str, Path]:
+    """Built-in instrument descriptions, keyed by name and by alias."""
+    out: dict[str, Path] = {}
+    for f in sorted((configs_dir() / "instruments").glob("*.yaml")):
+        doc = yaml.safe_load(f.read_text()) or {}
+        for key in [doc.get("name", f.stem), *doc.get("aliases", [])]:
+            out[str(key)] = f
+    return out
+
+
+def list_instruments() -> list[str]:
+    """Names (not aliases) of the built-in instruments."""
+    return sorted({yaml.safe_load(f.read_text())["name"] for f in set(instrument_files().values())})
+
+
+@lru_cache(maxsize=32)
+def _load_cached(path: str, mtime: float) -> Instrument:
+    return load_instrument_file(path)
+
+
+def load_instrument(name_or_path: str | Path) -> Instrument:
+    """A built-in instrument by name or alias (``lnd``), or one described by a YAML file path.
+
+    Instruments are cached per file and modification time; treat the result as read-only.
+    """
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml"):
+        if not p.is_file():
+            raise InstrumentError(f"{p}: instrument description not found")
+    else:
+        files = instrument_files()
+        if str(name_or_path) not in files:
+            raise InstrumentError(f"unknown instrument {str(name_or_path)!r}; built-in: {', '.join(sorted(files))}")
+        p = files[str(name_or_path)]
+    p = p.resolve()
+    return _load_cached(str(p), p.stat().st_mtime)
+
+
+__all__ = ["Attachment", "Instrument", "InstrumentError", "JOINT_NAMES", "load_instrument",
+           "load_instrument_file", "list_instruments", "instrument_files"]

@@ -1,0 +1,12 @@
+"""Where surftrack finds its bundled configuration files."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def configs_dir() -> Path:
+    """The ``configs/`` folder: ``$SURFTRACK_CONFIGS`` if set, else the one beside the package."""
+    env = os.environ.get("SURFTRACK_CONFIGS")
+    return Path(env) if env else Path(__file__).resolve().parent.parent / "configs"
