@@ -1,7 +1,14 @@
 """Articulated surgical instruments: parts, kinematics, procedural meshes, YAML library, BOP models."""
 
 from surftrack.instruments.bop_models import assign_obj_ids, export_bop_models, load_bop_models, model_info
-from surftrack.instruments.kinematics import JOINT_NAMES, JointLimits, JointState, KinematicChain, PartJoint
+from surftrack.instruments.kinematics import (
+    JOINT_NAMES,
+    JointLimits,
+    JointState,
+    KinematicChain,
+    PartJoint,
+    rcm_base_pose,
+)
 from surftrack.instruments.library import (
     Attachment,
     Instrument,
@@ -17,5 +24,5 @@ __all__ = [
     "Attachment", "Instrument", "InstrumentError", "JOINT_NAMES", "JointLimits", "JointState",
     "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "export_bop_models",
     "instrument_files", "list_instruments", "load_bop_models", "load_instrument", "load_instrument_file",
-    "model_info",
+    "model_info", "rcm_base_pose",
 ]

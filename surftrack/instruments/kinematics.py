@@ -115,3 +115,26 @@ class KinematicChain:
             parent = np.asarray(base_pose, dtype=np.float64) if j.parent is None else poses[j.parent]
             poses[name] = parent @ j.transform(q)
         return poses
+
+
+def rcm_base_pose(trocar: np.ndarray, pitch_point: np.ndarray, roll_reference: np.ndarray | None = None) -> np.ndarray:
+    """Base pose (zero-roll shaft frame to camera) of a shaft that passes through the ``trocar`` (remote
+    centre of motion) and has its wrist pitch axis at ``pitch_point`` (both camera frame, mm).
+
+    The shaft's +z points from the trocar to the pitch point. The base x axis is the component of
+    ``roll_reference`` (default: camera +z, the viewing direction) orthogonal to the shaft, so zero roll is
+    a well-defined, smooth function of the shaft direction; roll then turns about the shaft.
+    """
+    trocar = np.asarray(trocar, dtype=np.float64)
+    pitch_point = np.asarray(pitch_point, dtype=np.float64)
+    z = pitch_point - trocar
+    n = np.linalg.norm(z)
+    if n < 1e-6:
+        raise ValueError("the pitch point must differ from the trocar point")
+    z /= n
+    ref = np.array([0.0, 0.0, 1.0]) if roll_reference is None else np.asarray(roll_reference, dtype=np.float64)
+    x = ref - z * (ref @ z)
+    if np.linalg.norm(x) < 1e-6:  # shaft along the reference: any perpendicular will do
+        x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    return se3(np.stack([x, np.cross(z, x), z], axis=1), pitch_point)
