@@ -36,7 +36,7 @@ def run_demo(out_dir: Path, instrument: str = "lnd", seed: int = 0) -> dict:
     part_poses = inst.forward(base, q)
 
     renderer = Renderer(camera.width, camera.height)
-    tissue_id = renderer.add_mesh(tissue.mesh, tissue.material, amodal=False, colors=tissue.colors, crease_deg=180.0)
+    tissue_id = tissue.add_to(renderer)
     handles = add_instrument(renderer, inst)
     poses = {tissue_id: tissue_pose, **handles.poses(part_poses)}
     lights = [endoscope_light(0.9), Light(position=(25.0, -10.0, 0.0), direction=(-0.2, 0.1, 1.0), intensity=0.35)]

@@ -1,7 +1,8 @@
-"""Per-corner vertex data for the GPU: meshes are unrolled to three vertices per face.
+"""Vertex data for the GPU: indexed vertices whose normals are smooth across gentle edges and sharp
+across creases.
 
-Unrolling keeps the face order of the source mesh (so ray-casting oracles can index the same faces) and
-lets normals be smooth across gentle edges but sharp across creases.
+A mesh vertex is split into as many GPU vertices as it has distinct corner normals; faces keep the order
+of the source mesh, so ray-casting oracles can index the same faces.
 """
 
 from __future__ import annotations
@@ -27,19 +28,25 @@ def corner_normals(mesh: trimesh.Trimesh, crease_deg: float = 30.0) -> np.ndarra
     return n
 
 
-def unrolled_vertices(mesh: trimesh.Trimesh, crease_deg: float = 30.0, colors: np.ndarray | None = None,
-                      uv: np.ndarray | None = None) -> np.ndarray:
-    """Interleaved float32 vertex buffer (3F, 11): position, normal, colour (RGB in [0, 1]) and uv."""
+def vertex_buffer(mesh: trimesh.Trimesh, crease_deg: float = 30.0, colors: np.ndarray | None = None,
+                  uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Interleaved float32 vertices (N, 11): position, normal, colour (RGB in [0, 1]), uv; and uint32
+    indices (F, 3). Corners that share a mesh vertex and exactly the same normal share a GPU vertex."""
     F = len(mesh.faces)
-    out = np.zeros((F, 3, 11), dtype=np.float32)
-    out[..., 0:3] = np.asarray(mesh.vertices)[mesh.faces]
-    out[..., 3:6] = corner_normals(mesh, crease_deg)
+    normals = corner_normals(mesh, crease_deg).reshape(F * 3, 3)
+    vidx = np.asarray(mesh.faces).reshape(F * 3)
+    key = np.concatenate([vidx[:, None].astype(np.float64), normals], axis=1)
+    _, first, inverse = np.unique(np.ascontiguousarray(key).view(np.dtype((np.void, 32))).ravel(),
+                                  return_index=True, return_inverse=True)
+    v = vidx[first]
+    out = np.zeros((len(first), 11), dtype=np.float32)
+    out[:, 0:3] = np.asarray(mesh.vertices)[v]
+    out[:, 3:6] = normals[first]
     if colors is not None:
         c = np.asarray(colors)
-        c = c[..., :3].astype(np.float64) / (255.0 if c.dtype == np.uint8 else 1.0)
-        out[..., 6:9] = c[mesh.faces]
+        out[:, 6:9] = c[v, :3].astype(np.float64) / (255.0 if c.dtype == np.uint8 else 1.0)
     else:
-        out[..., 6:9] = 1.0
+        out[:, 6:9] = 1.0
     if uv is not None:
-        out[..., 9:11] = np.asarray(uv, dtype=np.float64)[mesh.faces]
-    return out.reshape(F * 3, 11)
+        out[:, 9:11] = np.asarray(uv, dtype=np.float64)[v]
+    return out, inverse.reshape(F, 3).astype(np.uint32)

@@ -30,12 +30,17 @@ from surftrack.geometry import PinholeCamera
 from surftrack.instruments.part import Material
 from surftrack.render.context import RenderError, gl_context
 from surftrack.render.lights import Light, endoscope_light
-from surftrack.render.meshdata import unrolled_vertices
+from surftrack.render.meshdata import vertex_buffer
 from surftrack.render.projection import gl_projection
 
 MODALITIES = frozenset({"rgb", "depth", "instance", "xyz", "normal", "amodal"})
 MAX_LIGHTS = 8
 AMODAL_SLOTS = 8  # instances per amodal pass: two RGBA8 targets, one channel each, blended with MAX
+# Colour attachments (channels, GL dtype) in shader output order: rgb, xyz, normal, depth, instance id.
+_TARGETS = [(4, "f1"), (4, "f4"), (4, "f4"), (1, "f4"), (1, "i4")]
+# Readback per modality: (channels, GL dtype, numpy dtype).
+_READ = {"rgb": (3, "f1", np.uint8), "xyz": (3, "f4", np.float32), "normal": (3, "f4", np.float32),
+         "depth": (1, "f4", np.float32), "instance": (1, "i4", np.int32)}
 
 _VERT = """
 #version 330
@@ -53,7 +58,7 @@ void main() {
 
 _FRAG = """
 #version 330
-uniform float inst_id;
+uniform int inst_id;
 uniform vec3 base_color;
 uniform float metallic;
 uniform float roughness;
@@ -65,12 +70,16 @@ uniform vec3 l_pos[8]; uniform vec3 l_dir[8]; uniform vec3 l_col[8];
 uniform float l_cos_in[8]; uniform float l_cos_out[8]; uniform float l_ref[8];
 in vec3 v_obj; in vec3 v_cam; in vec3 v_nrm; in vec3 v_col; in vec2 v_uv;
 layout(location = 0) out vec4 f_rgb;
-layout(location = 1) out vec4 f_xyzid;
-layout(location = 2) out vec4 f_nd;
+layout(location = 1) out vec4 f_xyz;
+layout(location = 2) out vec4 f_normal;
+layout(location = 3) out float f_depth;
+layout(location = 4) out int f_id;
 void main() {
     vec3 n = normalize(v_nrm);
     vec3 V = normalize(-v_cam);
-    if (dot(n, V) < 0.0 && !gl_FrontFacing) n = -n;  // open meshes (tissue) seen from behind
+    // Open meshes (tissue) seen from behind. The projection flips y (see _TARGETS), which swaps GL's
+    // notion of front-facing: our outward-facing triangles are the ones GL calls back-facing.
+    if (dot(n, V) < 0.0 && gl_FrontFacing) n = -n;
     vec3 albedo = base_color * v_col;
     if (use_tex) albedo *= texture(tex, v_uv).rgb;
     vec3 F0 = mix(vec3(0.04), albedo, metallic);
@@ -93,8 +102,10 @@ void main() {
     }
     c = c / (1.0 + max(max(c.r, c.g), c.b) * 0.15);  // soft shoulder for specular highlights
     f_rgb = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
-    f_xyzid = vec4(v_obj, inst_id);
-    f_nd = vec4(n, v_cam.z);
+    f_xyz = vec4(v_obj, 1.0);
+    f_normal = vec4(n, 0.0);
+    f_depth = v_cam.z;
+    f_id = inst_id;
 }
 """
 
@@ -114,6 +125,7 @@ void main() {
 @dataclass
 class _Geometry:
     vbo: moderngl.Buffer
+    ibo: moderngl.Buffer
     vao: moderngl.VertexArray
     vao_amodal: moderngl.VertexArray
 
@@ -162,11 +174,15 @@ class Renderer:
         self.prog = self.ctx.program(vertex_shader=_VERT, fragment_shader=_FRAG)
         self.prog_amodal = self.ctx.program(vertex_shader=_VERT, fragment_shader=_AMODAL_FRAG)
         size = (self.width, self.height)
-        self._rgb = self.ctx.texture(size, 4, dtype="f1")
-        self._xyzid = self.ctx.texture(size, 4, dtype="f4")
-        self._nd = self.ctx.texture(size, 4, dtype="f4")
+        # One target per modality, in shader output order; read back with the channels each needs, so
+        # every returned array is contiguous without a copy.
+        self._targets = [self.ctx.texture(size, c, dtype=d) for c, d in _TARGETS]
         self._depth = self.ctx.depth_texture(size)
-        self.fbo = self.ctx.framebuffer([self._rgb, self._xyzid, self._nd], self._depth)
+        self.fbo = self.ctx.framebuffer(self._targets, self._depth)
+        self._static_targets = [self.ctx.texture(size, c, dtype=d) for c, d in _TARGETS]
+        self._static_depth = self.ctx.depth_texture(size)
+        self._static_fbo = self.ctx.framebuffer(self._static_targets, self._static_depth)
+        self._static_key: tuple | None = None
         self._am = [self.ctx.texture(size, 4, dtype="f1") for _ in range(2)]
         self.fbo_amodal = self.ctx.framebuffer(self._am)
         self.instances: dict[int, _Instance] = {}
@@ -184,12 +200,14 @@ class Renderer:
         """
         if texture is not None and uv is None:
             raise ValueError("a texture needs per-vertex uv coordinates")
-        data = unrolled_vertices(mesh, crease_deg, colors, uv)
+        data, index = vertex_buffer(mesh, crease_deg, colors, uv)
         vbo = self.ctx.buffer(data.tobytes())
+        ibo = self.ctx.buffer(index.tobytes())
         fmt = ("3f 3f 3f 2f", "in_pos", "in_nrm", "in_col", "in_uv")
-        vao = self.ctx.vertex_array(self.prog, [(vbo, *fmt)])
-        vao_am = self.ctx.vertex_array(self.prog_amodal, [(vbo, "3f 32x", "in_pos")])
-        return self._add(_Geometry(vbo, vao, vao_am), material, amodal, texture, name)
+        vao = self.ctx.vertex_array(self.prog, [(vbo, *fmt)], index_buffer=ibo, index_element_size=4)
+        vao_am = self.ctx.vertex_array(self.prog_amodal, [(vbo, "3f 32x", "in_pos")], index_buffer=ibo,
+                                       index_element_size=4)
+        return self._add(_Geometry(vbo, ibo, vao, vao_am), material, amodal, texture, name)
 
     def add_instance(self, like: int, material: Material | None = None, *, amodal: bool = True, name: str = "") -> int:
         """A new instance sharing the uploaded geometry of instance ``like`` (no re-upload)."""
@@ -211,19 +229,25 @@ class Renderer:
     def render(self, camera: PinholeCamera, poses: dict[int, np.ndarray], lights: list[Light] | None = None,
                modalities: frozenset[str] | set[str] | tuple[str, ...] = MODALITIES,
                ambient: tuple[float, float, float] = (0.04, 0.035, 0.035),
-               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> RenderResult:
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               static: frozenset[int] | set[int] = frozenset()) -> RenderResult:
         """Render the instances in ``poses`` (instance id -> 4x4 model-to-camera, mm) with ``camera``.
 
         ``lights`` default to the endoscope light alone. Instances without a pose are not drawn.
+        ``static`` names instances (typically the tissue) whose rendering is cached as a layer and reused
+        while the camera, their poses, the lights, ambient and background stay the same: rendering many
+        instrument poses over one scene then costs only the instruments. The result is identical.
         """
         mods = frozenset(modalities)
         if mods - MODALITIES:
             raise ValueError(f"unknown modalities {sorted(mods - MODALITIES)}; available {sorted(MODALITIES)}")
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer is {self.width}x{self.height}")
-        unknown = set(poses) - set(self.instances)
+        unknown = (set(poses) | set(static)) - set(self.instances)
         if unknown:
             raise ValueError(f"no instance(s) {sorted(unknown)} in the scene")
+        if set(static) - set(poses):
+            raise ValueError(f"static instance(s) {sorted(set(static) - set(poses))} have no pose")
         lights = [endoscope_light()] if lights is None else list(lights)
         if len(lights) > MAX_LIGHTS:
             raise ValueError(f"at most {MAX_LIGHTS} lights, got {len(lights)}")
@@ -232,18 +256,50 @@ class Renderer:
         ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
-        self.fbo.use()
-        self.fbo.clear(depth=1.0)
-        self._clear_targets(background)
         self._set_lights(lights, ambient)
+        self.prog["proj"].write(proj.T.astype("f4").tobytes())
+        if static:
+            key = (camera.K.tobytes(), tuple(sorted((i, np.asarray(poses[i], np.float64).tobytes()) for i in static)),
+                   repr(lights), tuple(ambient), tuple(background))
+            if self._static_key != key:
+                self._begin(self._static_fbo, background)
+                self._draw({i: poses[i] for i in static})
+                self._static_key = key
+            ctx.copy_framebuffer(self.fbo, self._static_fbo)
+            self.fbo.use()
+        else:
+            self._begin(self.fbo, background)
+        # Amodal (instrument) instances first: they are usually in front, so early depth tests skip
+        # most of the occluded fragments of what follows.
+        rest = {i: T for i, T in poses.items() if i not in static}
+        self._draw(dict(sorted(rest.items(), key=lambda kv: not self.instances[kv[0]].amodal)))
+        out = RenderResult()
+        for k, name in enumerate(("rgb", "xyz", "normal", "depth", "instance")):
+            if name in mods:
+                setattr(out, name, self._read(self.fbo, k, *_READ[name]))
+        if "amodal" in mods:
+            out.amodal = self._render_amodal(proj, poses)
+        return out
+
+    def _begin(self, fbo: moderngl.Framebuffer, background: tuple[float, float, float]) -> None:
+        """Clear ``fbo`` (zeros, far depth; the colour target to ``background``) and bind it."""
+        fbo.use()
+        fbo.clear(depth=1.0)
+        # framebuffer.clear writes one colour to every attachment: clear the colour target on its own.
+        colour = fbo.color_attachments[0]
+        if colour.glo not in self._single_fbos:
+            self._single_fbos[colour.glo] = self.ctx.framebuffer([colour])
+        self._single_fbos[colour.glo].clear(*background, 1.0)
+        fbo.use()
+
+    def _draw(self, poses: dict[int, np.ndarray]) -> None:
         p = self.prog
-        p["proj"].write(proj.T.astype("f4").tobytes())
         for inst_id, T in poses.items():
             inst = self.instances[inst_id]
             T = np.asarray(T, dtype=np.float64)
             p["mv"].write(T.T.astype("f4").tobytes())
             p["nmat"].write(T[:3, :3].T.astype("f4").tobytes())
-            p["inst_id"].value = float(inst_id)
+            p["inst_id"].value = int(inst_id)
             m = inst.material
             p["base_color"].value = tuple(float(c) for c in m.color)
             p["metallic"].value = float(m.metallic)
@@ -253,34 +309,6 @@ class Renderer:
                 inst.texture.use(0)
                 p["tex"].value = 0
             inst.geometry.vao.render(moderngl.TRIANGLES)
-        out = RenderResult()
-        if "rgb" in mods:
-            out.rgb = self._read(self._rgb, "f1", 4)[..., :3].copy()
-        if mods & {"xyz", "instance"}:
-            a = self._read(self._xyzid, "f4", 4)
-            if "xyz" in mods:
-                out.xyz = a[..., :3].copy()
-            if "instance" in mods:
-                out.instance = a[..., 3].astype(np.int32)
-        if mods & {"normal", "depth"}:
-            a = self._read(self._nd, "f4", 4)
-            if "normal" in mods:
-                out.normal = a[..., :3].copy()
-            if "depth" in mods:
-                out.depth = a[..., 3].copy()
-        if "amodal" in mods:
-            out.amodal = self._render_amodal(proj, poses)
-        return out
-
-    def _clear_targets(self, background: tuple[float, float, float]) -> None:
-        # framebuffer.clear writes one colour to every attachment: clear the colour target on its own.
-        self._single_fbo(self._rgb).clear(*background, 1.0)
-        self.fbo.use()
-
-    def _single_fbo(self, tex: moderngl.Texture) -> moderngl.Framebuffer:
-        if tex.glo not in self._single_fbos:
-            self._single_fbos[tex.glo] = self.ctx.framebuffer([tex])
-        return self._single_fbos[tex.glo]
 
     def _set_lights(self, lights: list[Light], ambient: tuple[float, float, float]) -> None:
         p = self.prog
@@ -322,7 +350,7 @@ class Renderer:
                     p["mv"].write(np.asarray(poses[inst_id], dtype=np.float64).T.astype("f4").tobytes())
                     p["slot"].value = slot
                     self.instances[inst_id].geometry.vao_amodal.render(moderngl.TRIANGLES)
-                planes = [self._read(t, "f1", 4) for t in self._am[: 1 + (len(group) - 1) // 4]]
+                planes = [self._read(self.fbo_amodal, k, 4, "f1", np.uint8) for k in range(1 + (len(group) - 1) // 4)]
                 for slot, inst_id in enumerate(group):
                     out[inst_id] = planes[slot // 4][..., slot % 4] > 127
         finally:
@@ -331,13 +359,13 @@ class Renderer:
             ctx.enable(moderngl.DEPTH_TEST)
         return out
 
-    def _read(self, tex: moderngl.Texture, dtype: str, comps: int) -> np.ndarray:
-        """Read a target back as (H, W, comps), rows flipped to image order (top row first)."""
-        itemsize = 4 if dtype == "f4" else 1
-        buf = np.empty(self.width * self.height * comps * itemsize, dtype=np.uint8)
-        tex.read_into(buf)
-        arr = buf.view(np.float32 if dtype == "f4" else np.uint8).reshape(self.height, self.width, comps)
-        return arr[::-1]
+    def _read(self, fbo: moderngl.Framebuffer, attachment: int, comps: int, gl_dtype: str, np_dtype: type) -> np.ndarray:
+        """Read ``comps`` channels of one colour attachment into a new (H, W[, comps]) array. Rows are
+        already in image order (top first) because the projection flips y."""
+        shape = (self.height, self.width) if comps == 1 else (self.height, self.width, comps)
+        arr = np.empty(shape, dtype=np_dtype)
+        fbo.read_into(arr, components=comps, attachment=attachment, dtype=gl_dtype)
+        return arr
 
     def release(self) -> None:
         """Free the GL objects of this renderer (the context stays for the process)."""
@@ -346,11 +374,12 @@ class Renderer:
             g = inst.geometry
             if id(g) not in seen:
                 seen.add(id(g))
-                g.vao.release(); g.vao_amodal.release(); g.vbo.release()
+                g.vao.release(); g.vao_amodal.release(); g.vbo.release(); g.ibo.release()
             if inst.texture is not None and id(inst.texture) not in seen:
                 seen.add(id(inst.texture))
                 inst.texture.release()
-        for obj in (self.fbo, self.fbo_amodal, self._rgb, self._xyzid, self._nd, self._depth, *self._am,
+        for obj in (self.fbo, self.fbo_amodal, self._static_fbo, *self._targets, self._depth, *self._static_targets,
+                    self._static_depth, *self._am,
                     *self._single_fbos.values()):
             obj.release()
         self.instances.clear()

@@ -10,6 +10,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
 from surftrack.instruments.part import Material
+from surftrack.render import Renderer
 
 # Linear-RGB base colours: pink peritoneum, red muscle, pale fat, liver-like brown-red.
 TISSUE_PALETTE = np.array([
@@ -20,13 +21,20 @@ TISSUE_PALETTE = np.array([
 @dataclass(eq=False)
 class Tissue:
     """A tissue surface in its own frame: x, y across, z = depth offset (+z points away from a camera that
-    looks down +z). ``colors`` are per-vertex uint8 RGB."""
+    looks down +z). Colour comes from ``texture`` (uint8 RGB, row 0 at y = -extent/2) at per-vertex ``uv``;
+    ``height`` is the fine height field (texture resolution) the coarser mesh samples."""
 
     mesh: trimesh.Trimesh
-    colors: np.ndarray
+    texture: np.ndarray
+    uv: np.ndarray
     material: Material
     height: np.ndarray   # (ny, nx) height field, mm
     extent: tuple[float, float]
+
+    def add_to(self, renderer: Renderer) -> int:
+        """Upload into ``renderer`` (smooth normals, textured, no amodal mask); returns the instance id."""
+        return renderer.add_mesh(self.mesh, self.material, amodal=False, uv=self.uv, texture=self.texture,
+                                 crease_deg=180.0, name="tissue")
 
     def height_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Surface z at tissue-frame (x, y) by bilinear interpolation (edge values outside)."""
@@ -62,10 +70,16 @@ def _vessels(rng: np.random.Generator, w: float, h: float, count: int) -> tuple[
 
 
 def procedural_tissue(rng: np.random.Generator, extent: tuple[float, float] = (280.0, 230.0),
-                      spacing: float = 1.6, fold_depth: float = 14.0, vessels: int = 6) -> Tissue:
-    """A random tissue patch ``extent`` mm wide with folds up to ``fold_depth`` mm deep and vessels."""
+                      spacing: float = 2.5, texel: float = 0.5, fold_depth: float = 14.0, vessels: int = 6) -> Tissue:
+    """A random tissue patch ``extent`` mm wide with folds up to ``fold_depth`` mm deep and vessels.
+
+    Geometry is a grid of about ``spacing`` mm (folds are far wider, so it need not be fine); colour,
+    vessels and fine relief live in a texture of ``texel`` mm per pixel.
+    """
     w, h = extent
-    nx, ny = int(round(w / spacing)) + 1, int(round(h / spacing)) + 1
+    step = max(1, int(round(spacing / texel)))
+    nx, ny = int(round(w / texel / step)) * step + 1, int(round(h / texel / step)) * step + 1
+    spacing = texel
     xs, ys = np.linspace(-w / 2, w / 2, nx), np.linspace(-h / 2, h / 2, ny)
     X, Y = np.meshgrid(xs, ys)
     # Folds: a few elongated ridges and valleys, plus broad undulation and fine texture.
@@ -96,12 +110,16 @@ def procedural_tissue(rng: np.random.Generator, extent: tuple[float, float] = (2
         vessel_col = np.array([0.45, 0.06, 0.10]) if rng.random() < 0.7 else np.array([0.30, 0.12, 0.35])
         s = strength.reshape(X.shape)[..., None] * 0.8
         col = col * (1 - s) + vessel_col * s
-    colors = (np.clip(col, 0, 1) * 255).astype(np.uint8).reshape(-1, 3)
-    vertices = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=-1)
+    texture = (np.clip(col, 0, 1) * 255).astype(np.uint8)
+    Xc, Yc, Zc = X[::step, ::step], Y[::step, ::step], Z[::step, ::step]
+    vertices = np.stack([Xc.ravel(), Yc.ravel(), Zc.ravel()], axis=-1)
+    # Texture row 0 is y = -h/2; the renderer uploads rows flipped, so GL's v runs from the last row up.
+    uv = np.stack([(Xc.ravel() + w / 2) / w, 1.0 - (Yc.ravel() + h / 2) / h], axis=-1)
+    ny, nx = Xc.shape
     i = np.arange(ny - 1)[:, None] * nx + np.arange(nx - 1)[None, :]
     i = i.ravel()
     # Faces wound so that their normals face -z (towards a camera looking down +z).
     faces = np.concatenate([np.stack([i, i + nx, i + 1], -1), np.stack([i + 1, i + nx, i + nx + 1], -1)])
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     material = Material(color=(1.0, 1.0, 1.0), metallic=0.0, roughness=float(rng.uniform(0.25, 0.45)))
-    return Tissue(mesh, colors, material, Z, (w, h))
+    return Tissue(mesh, texture, uv, material, Z, (w, h))
