@@ -123,7 +123,10 @@ def load_instrument_file(path: str | Path) -> Instrument:
         try:
             joints[name] = PartJoint(parent=p.get("parent"), origin=tuple(j.get("origin", (0, 0, 0))),
                                      axis=tuple(j.get("axis", (0, 0, 1))), coefficients=dict(j.get("angle", {})))
-            parts[name] = Part(name, mesh, Material(**(p.get("material") or {})), kps)
+            mat = dict(p.get("material") or {})
+            if "color" in mat:
+                mat["color"] = tuple(float(c) for c in mat["color"])
+            parts[name] = Part(name, mesh, Material(**mat), kps)
         except (ValueError, TypeError) as e:
             raise InstrumentError(f"{where}: {e}") from None
         for k, a in enumerate(p.get("attachments") or []):
