@@ -149,6 +149,12 @@ class RenderResult:
     xyz: np.ndarray | None = None
     normal: np.ndarray | None = None
     amodal: dict[int, np.ndarray] = field(default_factory=dict)
+    amodal_pad: int = 0  # the amodal masks extend this many pixels beyond every image border
+
+    def amodal_in_image(self, inst_id: int) -> np.ndarray:
+        """The amodal mask of one instance cropped to the image."""
+        m, p = self.amodal[inst_id], self.amodal_pad
+        return m[p:m.shape[0] - p, p:m.shape[1] - p] if p else m
 
     def mask_visib(self, inst_id: int) -> np.ndarray:
         """Visible (modal) mask of one instance."""
@@ -183,10 +189,10 @@ class Renderer:
         self._static_depth = self.ctx.depth_texture(size)
         self._static_fbo = self.ctx.framebuffer(self._static_targets, self._static_depth)
         self._static_key: tuple | None = None
-        self._am = [self.ctx.texture(size, 4, dtype="f1") for _ in range(2)]
-        self.fbo_amodal = self.ctx.framebuffer(self._am)
+        self._amodal_fbos: dict[int, moderngl.Framebuffer] = {}
         self.instances: dict[int, _Instance] = {}
         self._single_fbos: dict[int, moderngl.Framebuffer] = {}
+        self._next_id = 0
 
     # ------------------------------------------------------------------ scene
     def add_mesh(self, mesh: trimesh.Trimesh, material: Material | None = None, *, amodal: bool = True,
@@ -221,22 +227,36 @@ class Renderer:
             gl_tex = self.ctx.texture((t.shape[1], t.shape[0]), 3, t.tobytes())
             gl_tex.build_mipmaps()
             gl_tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-        inst_id = len(self.instances) + 1
+        self._next_id += 1
+        inst_id = self._next_id
         self.instances[inst_id] = _Instance(geom, material or Material(), amodal, gl_tex, name)
         return inst_id
+
+    def remove(self, inst_id: int) -> None:
+        """Drop an instance; its geometry and texture are freed once no other instance uses them."""
+        inst = self.instances.pop(inst_id)
+        others = list(self.instances.values())
+        if not any(o.geometry is inst.geometry for o in others):
+            g = inst.geometry
+            g.vao.release(); g.vao_amodal.release(); g.vbo.release(); g.ibo.release()
+        if inst.texture is not None and not any(o.texture is inst.texture for o in others):
+            inst.texture.release()
+        self._static_key = None
 
     # ------------------------------------------------------------------ render
     def render(self, camera: PinholeCamera, poses: dict[int, np.ndarray], lights: list[Light] | None = None,
                modalities: frozenset[str] | set[str] | tuple[str, ...] = MODALITIES,
                ambient: tuple[float, float, float] = (0.04, 0.035, 0.035),
                background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-               static: frozenset[int] | set[int] = frozenset()) -> RenderResult:
+               static: frozenset[int] | set[int] = frozenset(), amodal_pad: int = 0) -> RenderResult:
         """Render the instances in ``poses`` (instance id -> 4x4 model-to-camera, mm) with ``camera``.
 
         ``lights`` default to the endoscope light alone. Instances without a pose are not drawn.
         ``static`` names instances (typically the tissue) whose rendering is cached as a layer and reused
         while the camera, their poses, the lights, ambient and background stay the same: rendering many
         instrument poses over one scene then costs only the instruments. The result is identical.
+        ``amodal_pad`` > 0 renders the amodal masks over the image plus that many pixels on every side, so
+        silhouettes truncated by the image border are counted whole (as BOP's ``px_count_all`` needs).
         """
         mods = frozenset(modalities)
         if mods - MODALITIES:
@@ -278,7 +298,8 @@ class Renderer:
             if name in mods:
                 setattr(out, name, self._read(self.fbo, k, *_READ[name]))
         if "amodal" in mods:
-            out.amodal = self._render_amodal(proj, poses)
+            out.amodal = self._render_amodal(camera, poses, int(amodal_pad))
+            out.amodal_pad = int(amodal_pad)
         return out
 
     def _begin(self, fbo: moderngl.Framebuffer, background: tuple[float, float, float]) -> None:
@@ -331,8 +352,19 @@ class Renderer:
                                   for lt in lights], 1))
         p["l_ref"].write(arr([lt.ref_distance for lt in lights], 1))
 
-    def _render_amodal(self, proj: np.ndarray, poses: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    def _amodal_fbo(self, pad: int) -> tuple[moderngl.Framebuffer, int, int]:
+        if pad not in self._amodal_fbos:
+            size = (self.width + 2 * pad, self.height + 2 * pad)
+            self._amodal_fbos[pad] = self.ctx.framebuffer([self.ctx.texture(size, 4, dtype="f1") for _ in range(2)])
+        return self._amodal_fbos[pad], self.width + 2 * pad, self.height + 2 * pad
+
+    def _render_amodal(self, camera: PinholeCamera, poses: dict[int, np.ndarray], pad: int) -> dict[int, np.ndarray]:
         ids = [i for i in poses if self.instances[i].amodal]
+        fbo, w, h = self._amodal_fbo(pad)
+        K = camera.K.copy()
+        K[0, 2] += pad
+        K[1, 2] += pad
+        proj = gl_projection(K, w, h, self.near, self.far)
         out: dict[int, np.ndarray] = {}
         ctx = self.ctx
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
@@ -344,13 +376,13 @@ class Renderer:
         try:
             for start in range(0, len(ids), AMODAL_SLOTS):
                 group = ids[start:start + AMODAL_SLOTS]
-                self.fbo_amodal.use()
-                self.fbo_amodal.clear(0.0, 0.0, 0.0, 0.0)
+                fbo.use()
+                fbo.clear(0.0, 0.0, 0.0, 0.0)
                 for slot, inst_id in enumerate(group):
                     p["mv"].write(np.asarray(poses[inst_id], dtype=np.float64).T.astype("f4").tobytes())
                     p["slot"].value = slot
                     self.instances[inst_id].geometry.vao_amodal.render(moderngl.TRIANGLES)
-                planes = [self._read(self.fbo_amodal, k, 4, "f1", np.uint8) for k in range(1 + (len(group) - 1) // 4)]
+                planes = [self._read(fbo, k, 4, "f1", np.uint8, (w, h)) for k in range(1 + (len(group) - 1) // 4)]
                 for slot, inst_id in enumerate(group):
                     out[inst_id] = planes[slot // 4][..., slot % 4] > 127
         finally:
@@ -359,10 +391,12 @@ class Renderer:
             ctx.enable(moderngl.DEPTH_TEST)
         return out
 
-    def _read(self, fbo: moderngl.Framebuffer, attachment: int, comps: int, gl_dtype: str, np_dtype: type) -> np.ndarray:
+    def _read(self, fbo: moderngl.Framebuffer, attachment: int, comps: int, gl_dtype: str, np_dtype: type,
+              size: tuple[int, int] | None = None) -> np.ndarray:
         """Read ``comps`` channels of one colour attachment into a new (H, W[, comps]) array. Rows are
         already in image order (top first) because the projection flips y."""
-        shape = (self.height, self.width) if comps == 1 else (self.height, self.width, comps)
+        w, h = size or (self.width, self.height)
+        shape = (h, w) if comps == 1 else (h, w, comps)
         arr = np.empty(shape, dtype=np_dtype)
         fbo.read_into(arr, components=comps, attachment=attachment, dtype=gl_dtype)
         return arr
@@ -378,8 +412,9 @@ class Renderer:
             if inst.texture is not None and id(inst.texture) not in seen:
                 seen.add(id(inst.texture))
                 inst.texture.release()
-        for obj in (self.fbo, self.fbo_amodal, self._static_fbo, *self._targets, self._depth, *self._static_targets,
-                    self._static_depth, *self._am,
+        amodal_targets = [t for f in self._amodal_fbos.values() for t in f.color_attachments]
+        for obj in (self.fbo, self._static_fbo, *self._targets, self._depth, *self._static_targets,
+                    self._static_depth, *self._amodal_fbos.values(), *amodal_targets,
                     *self._single_fbos.values()):
             obj.release()
         self.instances.clear()

@@ -1,0 +1,310 @@
+"""SynSurg6D-style dataset generation: sample, reject, render and write BOP images in worker processes.
+
+Every random choice comes from generators seeded by ``(seed, scene, image)`` (and ``(seed, scene,
+group)`` for the tissue patch shared by a group of images), so a dataset depends only on the seed and
+the configuration: not on the worker count, nor on whether the run was interrupted and resumed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from surftrack import __version__
+from surftrack.geometry import PinholeCamera
+from surftrack.instruments import Instrument, assign_obj_ids, export_bop_models, load_instrument
+from surftrack.render import Renderer, add_instrument, worker_context
+from surftrack.synth import bop_writer
+from surftrack.synth.checks import PartCollision, TissueCollision, in_view
+from surftrack.synth.config import SynthConfig
+from surftrack.synth.effects import CameraEffects, apply_effects
+from surftrack.synth.sampling import (
+    InstrumentSample,
+    jitter_pose,
+    sample_camera,
+    sample_instrument,
+    sample_lights,
+    sample_tissue_pose,
+    uniform,
+)
+from surftrack.synth.tissue import procedural_tissue
+
+MAX_INSTRUMENTS = 2
+REJECTIONS = ("geometry", "out_of_view", "tissue_collision", "part_collision", "tissue_coverage", "low_visibility")
+
+
+@dataclass
+class ImageStats:
+    scene_id: int
+    im_id: int
+    accepted: bool
+    attempts: int
+    rejections: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+class SceneGenerator:
+    """Per-process state: instruments, renderer (one GL context per process), collision checkers."""
+
+    def __init__(self, cfg: SynthConfig, seed: int, out_dir: Path):
+        self.cfg, self.seed, self.out = cfg, seed, Path(out_dir)
+        self.instruments = {n: load_instrument(n) for n in cfg.instruments}
+        self.obj_ids = {(inst.name, p): oid for oid, (inst, p) in
+                        assign_obj_ids(list(self.instruments.values())).items()}
+        self.renderer = Renderer(cfg.image.width, cfg.image.height)
+        self.handles = {}
+        for slot in range(MAX_INSTRUMENTS):
+            for name, inst in self.instruments.items():
+                self.handles[(slot, name)] = add_instrument(self.renderer, inst, like=self.handles.get((0, name)))
+        self.tissue_checks = {n: TissueCollision(i, seed=seed) for n, i in self.instruments.items()}
+        self.part_check = PartCollision(list(self.instruments.values()), slots=MAX_INSTRUMENTS)
+        self.effects = CameraEffects.from_dict(cfg.effects)
+        self.pad = max(cfg.image.width, cfg.image.height) // 2
+        self._tissue_key: tuple | None = None
+        self._tissue_id: int | None = None
+
+    # ------------------------------------------------------------------ tissue per group
+    def _group_tissue(self, scene_id: int, group: int):
+        key = (scene_id, group)
+        if key != self._tissue_key:
+            t = self.cfg.tissue
+            rng = np.random.default_rng([self.seed, scene_id, group, 7])
+            tissue = procedural_tissue(rng, extent=tuple(t.extent_mm), spacing=t.spacing_mm, texel=t.texel_mm,
+                                       fold_depth=uniform(rng, t.fold_depth_mm))
+            pose = sample_tissue_pose(t, rng)
+            if self._tissue_id is not None:
+                self.renderer.remove(self._tissue_id)
+            self._tissue_id = tissue.add_to(self.renderer)
+            self._tissue, self._tissue_pose, self._tissue_key = tissue, pose, key
+        return self._tissue, self._tissue_pose
+
+    # ------------------------------------------------------------------ one image
+    def make_image(self, scene_id: int, im_id: int) -> ImageStats:
+        """Sample until a configuration passes every test (or attempts run out), then write it."""
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        group = im_id // cfg.tissue.images_per_tissue
+        tissue, base_pose = self._group_tissue(scene_id, group)
+        rng = np.random.default_rng([self.seed, scene_id, im_id])
+        rejections: Counter = Counter()
+        for attempt in range(1, cfg.rejection.max_attempts + 1):
+            camera = sample_camera(cfg.image, cfg.camera, rng)
+            tissue_pose = jitter_pose(base_pose, rng, cfg.tissue.jitter_mm, cfg.tissue.jitter_deg)
+            reason, samples = self._sample_instruments(rng, camera, tissue, tissue_pose)
+            if reason:
+                rejections[reason] += 1
+                continue
+            lights, ambient = sample_lights(cfg.lighting, rng, samples)
+            poses = {self._tissue_id: tissue_pose}
+            for slot, s in enumerate(samples):
+                poses.update(self.handles[(slot, s.instrument.name)].poses(s.poses))
+            res = self.renderer.render(camera, poses, lights, ambient=ambient, amodal_pad=self.pad)
+            reason = self._check_render(res, samples)
+            if reason:
+                rejections[reason] += 1
+                continue
+            self._write(scene_id, im_id, camera, samples, res, rng, attempt, rejections)
+            return ImageStats(scene_id, im_id, True, attempt, dict(rejections), time.perf_counter() - t0)
+        return ImageStats(scene_id, im_id, False, cfg.rejection.max_attempts, dict(rejections), time.perf_counter() - t0)
+
+    def _sample_instruments(self, rng, camera, tissue, tissue_pose) -> tuple[str | None, list[InstrumentSample]]:
+        cfg = self.cfg
+        count = 2 if rng.random() < cfg.two_instruments_prob else 1
+        names = [cfg.instruments[int(rng.integers(len(cfg.instruments)))] for _ in range(count)]
+        samples: list[InstrumentSample] = []
+        for name in names:
+            near = samples[0].target if samples else None
+            s = sample_instrument(self.instruments[name], cfg.pose, rng, camera, tissue, tissue_pose, near=near)
+            if s is None:
+                return "geometry", []
+            if not in_view(s, camera, cfg.rejection.margin_px, cfg.pose.min_depth_mm):
+                return "out_of_view", []
+            if self.tissue_checks[name].collides(s.poses, tissue, tissue_pose):
+                return "tissue_collision", []
+            samples.append(s)
+        if self.part_check.collisions(samples):
+            return "part_collision", []
+        return None, samples
+
+    def _check_render(self, res, samples: list[InstrumentSample]) -> str | None:
+        if (res.instance > 0).mean() < self.cfg.tissue.min_coverage:
+            return "tissue_coverage"
+        thr = self.cfg.rejection.min_visib_fract
+        for slot, s in enumerate(samples):
+            h = self.handles[(slot, s.instrument.name)]
+            vis = {p: int((res.instance == i).sum()) for p, i in h.parts.items()}
+            full = {p: int(res.amodal[i].sum()) for p, i in h.parts.items()}
+            if sum(full.values()) == 0 or sum(vis.values()) < thr * sum(full.values()):
+                return "low_visibility"
+            if "wrist" in full and vis["wrist"] < thr * max(full["wrist"], 1):
+                return "low_visibility"
+        return None
+
+    def _write(self, scene_id, im_id, camera: PinholeCamera, samples, res, rng, attempts, rejections) -> None:
+        cfg = self.cfg
+        gt, info, masks, masks_visib = [], [], [], []
+        for slot, s in enumerate(samples):
+            h = self.handles[(slot, s.instrument.name)]
+            joints = {k: float(np.degrees(v)) for k, v in s.q.as_dict().items()}
+            for pname, iid in h.parts.items():
+                T = s.poses[pname]
+                gt.append({
+                    "obj_id": self.obj_ids[(s.instrument.name, pname)],
+                    "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": T[:3, 3].tolist(),
+                    "instrument": s.instrument.name, "instrument_index": slot, "part": pname,
+                    "joints_deg": joints, "trocar_mm": s.trocar.tolist(), "tip_to_tissue_mm": s.tip_to_tissue,
+                })
+                full_pad = res.amodal[iid]
+                full = res.amodal_in_image(iid)
+                visib = res.instance == iid
+                n_all, n_vis = int(full_pad.sum()), int(visib.sum())
+                info.append({
+                    "bbox_obj": bop_writer.bbox_xywh(full_pad, offset=self.pad),
+                    "bbox_visib": bop_writer.bbox_xywh(visib),
+                    "px_count_all": n_all, "px_count_valid": int((full & (res.depth > 0)).sum()),
+                    "px_count_visib": n_vis, "visib_fract": n_vis / n_all if n_all else 0.0,
+                })
+                masks.append(full)
+                masks_visib.append(visib)
+        rgb = apply_effects(res.rgb, self.effects, rng, principal_point=(camera.cx, camera.cy))
+        record = {
+            "scene_camera": {"cam_K": camera.K.ravel().tolist(), "depth_scale": cfg.output.depth_scale},
+            "scene_gt": gt, "scene_gt_info": info,
+            "stats": {"attempts": attempts, "rejections": dict(rejections)},
+        }
+        bop_writer.write_image(self.out, cfg.output.split, scene_id, im_id, rgb, res.depth, res.normal, masks,
+                               masks_visib, record, cfg.output.rgb_format, cfg.output.jpg_quality,
+                               cfg.output.depth_scale)
+
+
+# ---------------------------------------------------------------------- worker pool plumbing
+_GEN: SceneGenerator | None = None
+
+
+def _init_worker(cfg: SynthConfig, seed: int, out_dir: str) -> None:
+    global _GEN
+    _GEN = SceneGenerator(cfg, seed, Path(out_dir))
+
+
+def _run_task(task: tuple[int, list[int]]) -> list[ImageStats]:
+    scene_id, im_ids = task
+    return [_GEN.make_image(scene_id, i) for i in im_ids]
+
+
+def plan_tasks(cfg: SynthConfig, out: Path, n_images: int) -> list[tuple[int, list[int]]]:
+    """Groups of images (sharing a tissue patch) still to make, as (scene id, image ids)."""
+    per_scene, per_group = cfg.output.images_per_scene, cfg.tissue.images_per_tissue
+    tasks, done_cache = [], {}
+    for g in range(0, n_images, per_group):
+        scene_id, first = g // per_scene, g % per_scene
+        if scene_id not in done_cache:
+            done_cache[scene_id] = bop_writer.finished_images(out, cfg.output.split, scene_id)
+        ids = [i for i in range(first, min(first + per_group, n_images - scene_id * per_scene))
+               if i not in done_cache[scene_id]]
+        if ids:
+            tasks.append((scene_id, ids))
+    return tasks
+
+
+@dataclass
+class GenerationReport:
+    requested: int
+    made: int
+    skipped: int
+    failed: int
+    attempts: int
+    rejections: dict[str, int]
+    seconds: float
+
+    @property
+    def acceptance_rate(self) -> float:
+        return self.made / self.attempts if self.attempts else 0.0
+
+
+def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed: int = 0, workers: int = 1,
+                     progress: bool = True) -> GenerationReport:
+    """Generate (or resume) a BOP dataset of ``n_images`` images in ``out_dir``; see the module docstring.
+
+    Finalises every touched scene and writes ``models/``, ``dataset_card.json`` and a contact sheet, also
+    when interrupted.
+    """
+    from tqdm import tqdm
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    instruments = [load_instrument(n) for n in cfg.instruments]
+    export_bop_models(instruments, out / "models")
+    tasks = plan_tasks(cfg, out, n_images)
+    todo = sum(len(ids) for _, ids in tasks)
+    stats: list[ImageStats] = []
+    t0 = time.perf_counter()
+    bar = tqdm(total=todo, desc="synth", unit="img", disable=not progress)
+    try:
+        if workers <= 1:
+            _init_worker(cfg, seed, str(out))
+            for task in tasks:
+                res = _run_task(task)
+                stats += res
+                bar.update(len(res))
+        elif tasks:
+            with worker_context().Pool(workers, initializer=_init_worker, initargs=(cfg, seed, str(out))) as pool:
+                for res in pool.imap_unordered(_run_task, tasks):
+                    stats += res
+                    bar.update(len(res))
+    finally:
+        bar.close()
+        scenes = sorted({s for s, _ in plan_tasks(cfg, out, 0)} | {st.scene_id for st in stats}
+                        | set(range((n_images + cfg.output.images_per_scene - 1) // cfg.output.images_per_scene)))
+        for s in scenes:
+            if bop_writer.scene_dir(out, cfg.output.split, s).is_dir():
+                bop_writer.finalize_scene(out, cfg.output.split, s)
+        report = _report(stats, n_images, todo, time.perf_counter() - t0)
+        write_dataset_card(out, cfg, seed, instruments, report)
+        from surftrack.synth.contact_sheet import write_contact_sheet
+
+        write_contact_sheet(out, cfg.output.split)
+    return report
+
+
+def _report(stats: list[ImageStats], requested: int, todo: int, seconds: float) -> GenerationReport:
+    rej: Counter = Counter()
+    for s in stats:
+        rej.update(s.rejections)
+    return GenerationReport(requested=requested, made=sum(s.accepted for s in stats), skipped=requested - todo,
+                            failed=sum(not s.accepted for s in stats), attempts=sum(s.attempts for s in stats),
+                            rejections={k: rej.get(k, 0) for k in REJECTIONS}, seconds=seconds)
+
+
+def write_dataset_card(out: Path, cfg: SynthConfig, seed: int, instruments: list[Instrument],
+                       report: GenerationReport) -> None:
+    """``dataset_card.json``: generation config, counts, acceptance statistics and object ids."""
+    card_path = out / "dataset_card.json"
+    card = json.loads(card_path.read_text()) if card_path.is_file() else {"runs": []}
+    split = cfg.output.split
+    n_images = sum(len(json.loads((d / "scene_gt.json").read_text()))
+                   for d in sorted((out / split).glob("[0-9]" * 6)) if (d / "scene_gt.json").is_file())
+    card["runs"].append({"made": report.made, "skipped_existing": report.skipped, "failed": report.failed,
+                         "attempts": report.attempts, "acceptance_rate": round(report.acceptance_rate, 4),
+                         "rejections": report.rejections, "seconds": round(report.seconds, 1)})
+    all_runs = card["runs"]
+    card.update({
+        "format": "BOP (bop_toolkit layout); extra scene_gt keys: instrument, instrument_index, part, joints_deg, "
+                  "trocar_mm, tip_to_tissue_mm; normal/<im>.png = uint16 RGB (n + 1) / 2 * 65535, camera frame",
+        "generator": f"surftrack {__version__}", "seed": seed, "split": split, "config": cfg.to_dict(),
+        "images": n_images,
+        "objects": {str(oid): {"instrument": inst.name, "part": p}
+                    for oid, (inst, p) in assign_obj_ids(instruments).items()},
+        "acceptance": {
+            "attempts": sum(r["attempts"] for r in all_runs),
+            "accepted": sum(r["made"] for r in all_runs),
+            "rejections": {k: sum(r["rejections"].get(k, 0) for r in all_runs) for k in REJECTIONS},
+        },
+    })
+    a = card["acceptance"]
+    a["acceptance_rate"] = round(a["accepted"] / a["attempts"], 4) if a["attempts"] else 0.0
+    card_path.write_text(json.dumps(card, indent=2))
