@@ -2,8 +2,8 @@
 
 ``<root>/<split>/<scene 06d>/`` holds ``rgb/<im 06d>.{jpg,png}``, ``depth/<im>.png`` (uint16, value *
 ``depth_scale`` = mm), ``mask/<im>_<gt 06d>.png`` and ``mask_visib/...`` (0/255; masks from an
-instance-id buffer, not from BOP's depth tolerance), ``normal/<im>.png`` (uint16 RGB, ``(n + 1) / 2 *
-65535``, camera frame, 0 = no surface) and the scene JSON files. Each finished image first leaves a small
+instance-id buffer, not from BOP's depth tolerance), ``normal/<im>.png`` (uint8 RGB, ``(n + 1) / 2 *
+255``, camera frame, 0 = no surface) and the scene JSON files. Each finished image first leaves a small
 record in ``<scene>/records/<im>.json``; :func:`finalize_scene` merges the records into
 ``scene_camera.json``, ``scene_gt.json`` and ``scene_gt_info.json``, so an interrupted run is resumable
 and every finalised scene is valid.
@@ -29,11 +29,27 @@ def record_path(root: Path, split: str, scene_id: int, im_id: int) -> Path:
 
 def bbox_xywh(mask: np.ndarray, offset: int = 0) -> list[int]:
     """BOP box [x, y, w, h] (w = xmax - xmin) of a mask, shifted by ``-offset``; [-1] * 4 when empty."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
         return [-1, -1, -1, -1]
-    x0, y0 = int(xs.min()) - offset, int(ys.min()) - offset
-    return [x0, y0, int(xs.max()) - offset - x0, int(ys.max()) - offset - y0]
+    x0, y0 = int(cols[0]) - offset, int(rows[0]) - offset
+    return [x0, y0, int(cols[-1]) - offset - x0, int(rows[-1]) - offset - y0]
+
+
+def encode_normals(normal: np.ndarray) -> np.ndarray:
+    """Camera-frame unit normals (H, W, 3) as uint8 RGB ``round((n + 1) / 2 * 255)``; 0 where no surface
+    (a valid normal never encodes to (0, 0, 0): that would need n = (-1, -1, -1))."""
+    valid = np.linalg.norm(normal, axis=-1) > 0.5
+    enc = np.clip(np.round((normal + 1.0) * 127.5), 0, 255).astype(np.uint8)
+    enc[~valid] = 0
+    return enc
+
+
+def decode_normals(enc: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`encode_normals` (renormalised); zeros where there is no surface."""
+    n = enc.astype(np.float32) / 127.5 - 1.0
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where((enc.sum(-1, keepdims=True) > 0) & (norm > 0), n / np.maximum(norm, 1e-6), 0.0)
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -61,9 +77,7 @@ def write_image(root: Path, split: str, scene_id: int, im_id: int, rgb: np.ndarr
     _imwrite(d / "rgb" / f"{name}.{rgb_format}", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
     depth_u16 = np.clip(np.round(depth / depth_scale), 0, 65535).astype(np.uint16)
     _imwrite(d / "depth" / f"{name}.png", depth_u16)
-    valid = np.linalg.norm(normal, axis=-1) > 0.5
-    n16 = np.where(valid[..., None], np.clip((normal + 1.0) * 0.5 * 65535.0, 0, 65535), 0).astype(np.uint16)
-    _imwrite(d / "normal" / f"{name}.png", cv2.cvtColor(n16, cv2.COLOR_RGB2BGR))
+    _imwrite(d / "normal" / f"{name}.png", cv2.cvtColor(encode_normals(normal), cv2.COLOR_RGB2BGR))
     for k, (m, mv) in enumerate(zip(masks, masks_visib)):
         _imwrite(d / "mask" / f"{name}_{k:06d}.png", m.astype(np.uint8) * 255)
         _imwrite(d / "mask_visib" / f"{name}_{k:06d}.png", mv.astype(np.uint8) * 255)

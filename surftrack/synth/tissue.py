@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.ndimage import gaussian_filter, map_coordinates
+from scipy.ndimage import gaussian_filter, map_coordinates, zoom
 from scipy.spatial import cKDTree
 
 from surftrack.instruments.part import Material
@@ -46,7 +46,15 @@ class Tissue:
 
 
 def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> np.ndarray:
-    n = gaussian_filter(rng.standard_normal(shape), sigma, mode="reflect")
+    """Gaussian-filtered white noise scaled to [-1, 1]. Wide kernels are applied on a coarser grid and
+    interpolated back (the result is band-limited anyway), which keeps big patches fast."""
+    f = max(1, int(sigma // 3))
+    if f == 1:
+        n = gaussian_filter(rng.standard_normal(shape), sigma, mode="reflect")
+    else:
+        small = (shape[0] // f + 2, shape[1] // f + 2)
+        n = zoom(gaussian_filter(rng.standard_normal(small), sigma / f, mode="reflect"), f, order=3)
+        n = n[: shape[0], : shape[1]]
     return n / (np.abs(n).max() + 1e-12)
 
 
