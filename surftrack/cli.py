@@ -42,6 +42,28 @@ def _cmd_instruments(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from surftrack.synth.config import load_synth_config
+    from surftrack.synth.generate import generate_dataset
+
+    overrides = {}
+    if args.instruments:
+        from surftrack.instruments import load_instrument
+
+        overrides["instruments"] = [load_instrument(n.strip()).name for n in args.instruments.split(",") if n.strip()]
+    cfg = load_synth_config(args.config, overrides)
+    if args.images <= 0:
+        raise CLIError(f"--images must be positive, got {args.images}")
+    out = Path(args.out)
+    r = generate_dataset(out, cfg, args.images, seed=args.seed, workers=args.workers, progress=not args.quiet)
+    print(f"surftrack synth: {r.made} images made, {r.skipped} already there, {r.failed} failed "
+          f"in {r.seconds:.1f} s ({r.made / max(r.seconds, 1e-9):.2f} images/s, {args.workers} worker(s))")
+    print(f"  acceptance {r.acceptance_rate:.1%} of {r.attempts} attempts; rejections: "
+          + ", ".join(f"{k} {v}" for k, v in r.rejections.items()))
+    print(f"wrote {out / cfg.output.split}, {out / 'models'}, {out / 'dataset_card.json'}, {out / 'contact_sheet.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
@@ -55,6 +77,15 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all built-in)")
     i.add_argument("--export", metavar="DIR", help="write a BOP models/ folder with models_info.json")
     i.set_defaults(func=_cmd_instruments)
+    sy = sub.add_parser("synth", help="generate a SynSurg6D-style BOP dataset (resumable)")
+    sy.add_argument("--out", required=True, help="dataset folder (created; an existing one is resumed)")
+    sy.add_argument("--instruments", help="comma-separated names or aliases (default: from the config)")
+    sy.add_argument("--images", type=int, default=100, help="total number of images (default: 100)")
+    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--workers", type=int, default=1, help="worker processes, each with its own GL context")
+    sy.add_argument("--config", help="synthesis YAML (default: configs/synth/default.yaml)")
+    sy.add_argument("--quiet", action="store_true", help="no progress bar")
+    sy.set_defaults(func=_cmd_synth)
     return p
 
 
@@ -62,11 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point: user errors become one line on stderr and exit code 2."""
     from surftrack.instruments import InstrumentError
     from surftrack.render import RenderError
+    from surftrack.synth.config import ConfigError
 
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (CLIError, InstrumentError, RenderError, FileNotFoundError, PermissionError) as e:
+    except (CLIError, InstrumentError, RenderError, ConfigError, FileNotFoundError, PermissionError) as e:
         print(f"surftrack: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

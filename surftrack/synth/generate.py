@@ -92,10 +92,13 @@ class SceneGenerator:
         tissue, base_pose = self._group_tissue(scene_id, group)
         rng = np.random.default_rng([self.seed, scene_id, im_id])
         rejections: Counter = Counter()
+        # What is in the image is decided once, so that rejections cannot bias the mix of instruments.
+        count = 2 if rng.random() < cfg.two_instruments_prob else 1
+        names = [cfg.instruments[int(rng.integers(len(cfg.instruments)))] for _ in range(count)]
         for attempt in range(1, cfg.rejection.max_attempts + 1):
             camera = sample_camera(cfg.image, cfg.camera, rng)
             tissue_pose = jitter_pose(base_pose, rng, cfg.tissue.jitter_mm, cfg.tissue.jitter_deg)
-            reason, samples = self._sample_instruments(rng, camera, tissue, tissue_pose)
+            reason, samples = self._sample_instruments(rng, names, camera, tissue, tissue_pose)
             if reason:
                 rejections[reason] += 1
                 continue
@@ -112,10 +115,8 @@ class SceneGenerator:
             return ImageStats(scene_id, im_id, True, attempt, dict(rejections), time.perf_counter() - t0)
         return ImageStats(scene_id, im_id, False, cfg.rejection.max_attempts, dict(rejections), time.perf_counter() - t0)
 
-    def _sample_instruments(self, rng, camera, tissue, tissue_pose) -> tuple[str | None, list[InstrumentSample]]:
+    def _sample_instruments(self, rng, names, camera, tissue, tissue_pose) -> tuple[str | None, list[InstrumentSample]]:
         cfg = self.cfg
-        count = 2 if rng.random() < cfg.two_instruments_prob else 1
-        names = [cfg.instruments[int(rng.integers(len(cfg.instruments)))] for _ in range(count)]
         samples: list[InstrumentSample] = []
         for name in names:
             near = samples[0].target if samples else None
