@@ -64,6 +64,23 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from surftrack.model.config import load_train_config
+    from surftrack.model.train import train
+
+    cfg = load_train_config(args.config)
+    if args.steps is not None and args.steps <= 0:
+        raise CLIError(f"--steps must be positive, got {args.steps}")
+    s = train(cfg, args.data, args.out, steps=args.steps, resume=args.resume, device=args.device,
+              progress=not args.quiet)
+    val = s["val"]
+    extra = (f"; held-out: RE median {val['re_median']:.1f} deg, TE median {val['te_median']:.1f} mm, "
+             f"ADD-10 {100 * val['add10']:.1f} %") if "re_median" in val else ""
+    print(f"surftrack train: {s['steps']} steps at {s['images_per_s']:.1f} images/s{extra}")
+    print(f"wrote {s['checkpoint']} and {s['metrics']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
@@ -86,6 +103,15 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--config", help="synthesis YAML (default: configs/synth/default.yaml)")
     sy.add_argument("--quiet", action="store_true", help="no progress bar")
     sy.set_defaults(func=_cmd_synth)
+    tr = sub.add_parser("train", help="train a SurfSurg6D model on a BOP dataset")
+    tr.add_argument("--config", default="lite", help="training YAML or a name in configs/train (default: lite)")
+    tr.add_argument("--data", required=True, help="BOP dataset folder (e.g. made by `surftrack synth`)")
+    tr.add_argument("--out", default="model.pt", help="checkpoint file (default: model.pt)")
+    tr.add_argument("--steps", type=int, help="override the number of training steps")
+    tr.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    tr.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=_cmd_train)
     return p
 
 
@@ -95,10 +121,16 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.render import RenderError
     from surftrack.synth.config import ConfigError
 
+    from surftrack.model.checkpoint import CheckpointError
+    from surftrack.model.config import TrainConfigError
+
+    errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
+              FileNotFoundError, PermissionError)
+
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (CLIError, InstrumentError, RenderError, ConfigError, FileNotFoundError, PermissionError) as e:
+    except errors as e:
         print(f"surftrack: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

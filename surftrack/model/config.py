@@ -1,0 +1,129 @@
+"""Training configuration: dataclasses with defaults (the paper's), loaded from ``configs/train/*.yaml``."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class TrainConfigError(ValueError):
+    """A malformed training configuration; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class ModelCfg:
+    emb_dim: int = 12
+    decoder_widths: tuple[int, ...] = (256, 128, 64, 64, 64)
+    single_decoder: bool = False
+    siren_hidden: int = 256
+
+
+@dataclass(frozen=True)
+class DataCfg:
+    crop: int = 224
+    scale: float = 1.2
+    jitter: float = 0.1
+    max_rotation_deg: float = 0.0
+    mask_mode: str = "amodal"
+    min_visib_fract: float = 0.1
+    augment: dict[str, Any] = field(default_factory=dict)
+    real_data: str | None = None     # a second (real) BOP dataset mixed in at real_ratio
+    real_ratio: float = 0.5          # the paper's syn:real 1:1
+
+
+@dataclass(frozen=True)
+class LossCfg:
+    alpha: float = 1.0
+    beta: float = 1.0
+    lam: float = 10.0
+    m: float = 0.01
+    pen_floor: float = 0.01
+    n_pos: int = 1024
+    n_neg: int = 1024
+    key_noise: float = 1e-3
+
+
+@dataclass(frozen=True)
+class OptimCfg:
+    lr_net: float = 3e-4
+    lr_field: float = 3e-5
+    batch: int = 20
+    steps: int = 13000
+    warmup: int = 0
+
+
+@dataclass(frozen=True)
+class RunCfg:
+    val_every: int = 500
+    val_images: int = 50
+    ckpt_every: int = 1000
+    log_every: int = 50
+    workers: int = 4
+    seed: int = 0
+    amp: bool = True
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    model: ModelCfg = field(default_factory=ModelCfg)
+    data: DataCfg = field(default_factory=DataCfg)
+    loss: LossCfg = field(default_factory=LossCfg)
+    optim: OptimCfg = field(default_factory=OptimCfg)
+    run: RunCfg = field(default_factory=RunCfg)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, where: str = "config") -> TrainConfig:
+        return _build(cls, data, where)
+
+    def replace(self, **sections: dict) -> TrainConfig:
+        """A copy with some fields of some sections replaced: ``cfg.replace(optim={"steps": 10})``."""
+        d = self.to_dict()
+        for k, v in sections.items():
+            d[k].update(v)
+        return TrainConfig.from_dict(d)
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    if data is None:
+        return cls()
+    if not isinstance(data, dict):
+        raise TrainConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(fields)
+    if unknown:
+        raise TrainConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    kwargs = {}
+    defaults = cls()
+    for k, v in data.items():
+        d = getattr(defaults, k)
+        if dataclasses.is_dataclass(d):
+            kwargs[k] = _build(type(d), v, f"{where}.{k}")
+        elif isinstance(d, tuple) and isinstance(v, list):
+            kwargs[k] = tuple(v)
+        else:
+            kwargs[k] = v
+    return cls(**kwargs)
+
+
+def load_train_config(path: str | Path) -> TrainConfig:
+    """Load ``path`` (YAML); a bare name like ``lite`` means ``configs/train/lite.yaml``."""
+    from surftrack.paths import configs_dir
+
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = configs_dir() / "train" / f"{path}.yaml"
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise TrainConfigError(f"{p}: cannot read training config: {e}") from None
+    cfg = _build(TrainConfig, data, str(p))
+    if cfg.data.mask_mode not in ("amodal", "modal"):
+        raise TrainConfigError(f"{p}: data.mask_mode must be 'amodal' or 'modal', got {cfg.data.mask_mode!r}")
+    return cfg

@@ -1,0 +1,326 @@
+"""Training SurfSurg6D: data, the step (mask BCE + penNCE + consistency), validation, checkpoints.
+
+``surftrack train --config lite --data DIR --out model.pt [--steps N] [--resume]``. Multi-GPU: launch
+with ``torchrun --nproc_per_node G -m surftrack.cli train ...`` (DDP; rank 0 logs and saves).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from surftrack.geometry import rotation_angle_deg
+from surftrack.model import losses
+from surftrack.model.checkpoint import load_checkpoint, save_checkpoint
+from surftrack.model.config import TrainConfig
+from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D, surface_bank
+
+BANK_SIZE = 20000
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def _dist() -> tuple[int, int]:
+    """(rank, world size), initialising torch.distributed when launched by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return (torch.distributed.get_rank() if world > 1 else 0), world
+
+
+class Trainer:
+    """Holds the model, the surface banks and the optimiser; :meth:`step` runs one training step."""
+
+    def __init__(self, model: SurfSurg6D, cfg: TrainConfig, device: torch.device):
+        self.model, self.cfg, self.device = model, cfg, device
+        banks = [surface_bank(p, BANK_SIZE, seed=i) for i, p in enumerate(model.parts)]
+        self.bank = torch.stack([torch.from_numpy(b[0]) for b in banks]).to(device)  # (P, BANK, 3)
+        o = cfg.optim
+        self.optimizer = torch.optim.Adam([
+            {"params": model.net.parameters(), "lr": o.lr_net},
+            {"params": model.fields.parameters(), "lr": o.lr_field},
+        ])
+        self.amp = cfg.run.amp and device.type == "cuda"
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+
+    def losses(self, batch: dict, gen: torch.Generator | None = None, module: torch.nn.Module | None = None) -> dict:
+        """Loss components for a batch (see :func:`surftrack.model.losses.surfsurg6d_loss`)."""
+        cfg, model = self.cfg.loss, self.model
+        net = module if module is not None else model
+        img = batch["image"].to(self.device, non_blocking=True)
+        if self.device.type == "cuda":
+            img = img.contiguous(memory_format=torch.channels_last)
+        part = batch["part_index"].to(self.device)
+        mask_t = batch["mask_train"].to(self.device)
+        valid = batch["coord_valid"].to(self.device) & (mask_t > 0.5)
+        coord = batch["coord_norm"].to(self.device)
+        B, S = img.shape[0], img.shape[-1]
+        with torch.autocast(self.device.type, enabled=self.amp):
+            mask_logit, query = net(img, part)
+        mask_logit, query = mask_logit.float(), query.float()
+        # Queries: n_pos pixels per crop from the training mask (with replacement when it is small).
+        w = valid.view(B, -1).float()
+        empty = w.sum(1) == 0
+        w[empty] = 1.0  # never happens after dataset filtering; keeps multinomial defined
+        idx = torch.multinomial(w, cfg.n_pos, replacement=True, generator=gen)        # (B, N)
+        q = query.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, query.shape[1]))
+        c_q = coord.view(B, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
+        neg_idx = torch.randint(0, self.bank.shape[1], (B, cfg.n_neg), device=self.device, generator=gen)
+        c_neg = self.bank[part[:, None], neg_idx]                                       # (B, M, 3)
+        noise = torch.randn((B, cfg.n_pos + cfg.n_neg, 3), device=self.device, generator=gen) * cfg.key_noise
+        pts = torch.cat([c_q, c_neg], dim=1) + noise
+        keys = torch.empty((B, pts.shape[1], query.shape[1]), device=self.device)
+        for p in torch.unique(part).tolist():
+            sel = (part == p).nonzero(as_tuple=True)[0]
+            keys[sel] = model.keys(p, pts[sel].reshape(-1, 3)).view(len(sel), pts.shape[1], -1)
+        k_pos, k_neg = keys[:, : cfg.n_pos], keys[:, cfg.n_pos:]
+        out = losses.surfsurg6d_loss(
+            mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, key_coords=c_neg, key_emb=k_neg,
+            alpha=cfg.alpha, beta=cfg.beta, lam=cfg.lam, m=cfg.m, pen_floor=cfg.pen_floor)
+        out["empty_masks"] = empty.sum().float()
+        return out
+
+    def step(self, batch: dict, module: torch.nn.Module | None = None) -> dict[str, float]:
+        self.model.train()
+        self.optimizer.zero_grad(set_to_none=True)
+        out = self.losses(batch, module=module)
+        self.scaler.scale(out["total"]).backward()
+        self.scaler.unscale_(self.optimizer)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 10.0)
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        logs = {k: float(v.detach()) for k, v in out.items()}
+        logs["grad_norm"] = float(grad_norm)
+        return logs
+
+
+@torch.no_grad()
+def quick_pose_eval(model: SurfSurg6D, batch: dict, bank: torch.Tensor, device: torch.device,
+                    max_queries: int = 600, n_keys: int = 4000) -> list[dict]:
+    """A fast pose check for validation: per crop, argmax correspondences of predicted-mask pixels
+    against surface keys, then RANSAC-PnP; returns RE (deg), TE (mm) and ADD (mm) per crop."""
+    model.eval()
+    img, part = batch["image"].to(device), batch["part_index"].to(device)
+    mask_logit, query = model(img, part)
+    out = []
+    for b in range(img.shape[0]):
+        p = int(part[b])
+        info = model.parts[p]
+        m = torch.sigmoid(mask_logit[b]) > 0.5
+        ys, xs = torch.nonzero(m, as_tuple=True)
+        res = {"re": 180.0, "te": 1e3, "add": 1e3, "part": p}
+        if len(xs) >= 6:
+            sel = torch.randperm(len(xs), device=device)[:max_queries]
+            ys, xs = ys[sel], xs[sel]
+            qv = query[b][:, ys, xs].T                                   # (Q, E)
+            kc = bank[p, :n_keys]
+            keys = model.keys(p, kc)
+            best = (qv @ keys.T).argmax(1)
+            obj = (kc[best].cpu().numpy() * info.radius + info.center).astype(np.float64)
+            uv = torch.stack([xs, ys], 1).cpu().numpy().astype(np.float64)
+            K = batch["K"][b].numpy().astype(np.float64)
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, uv, K, None, reprojectionError=3.0, iterationsCount=200,
+                                                     flags=cv2.SOLVEPNP_EPNP)
+            if ok:
+                R = cv2.Rodrigues(rvec)[0]
+                t = tvec.ravel()
+                Rg, tg = batch["R"][b].numpy().astype(np.float64), batch["t"][b].numpy().astype(np.float64)
+                pts = info.vertices
+                add = np.linalg.norm((pts @ R.T + t) - (pts @ Rg.T + tg), axis=1).mean()
+                res = {"re": float(rotation_angle_deg(R, Rg)), "te": float(np.linalg.norm(t - tg)),
+                       "add": float(add), "part": p}
+        diam = float(np.linalg.norm(info.vertices.max(0) - info.vertices.min(0)))
+        res["add10"] = res["add"] < 0.1 * diam
+        out.append(res)
+    return out
+
+
+def plot_curves(metrics_path: Path, png_path: Path) -> None:
+    """Training and validation curves from the JSON-lines log."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
+    train = [r for r in rows if r["kind"] == "train"]
+    val = [r for r in rows if r["kind"] == "val"]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for key in ("total", "nce", "mask", "con"):
+        if train and key in train[0]:
+            axes[0].plot([r["step"] for r in train], [r[key] for r in train], label=key)
+    axes[0].set_yscale("log"); axes[0].set_xlabel("step"); axes[0].set_title("training loss"); axes[0].legend()
+    if val:
+        axes[1].plot([r["step"] for r in val], [r["total"] for r in val], "o-", label="val total")
+        axes[1].set_xlabel("step"); axes[1].set_title("validation loss"); axes[1].legend()
+        axes[2].plot([r["step"] for r in val], [r["re_median"] for r in val], "o-", label="RE median (deg)")
+        axes[2].plot([r["step"] for r in val], [100 * r["add10"] for r in val], "s-", label="ADD-10 (%)")
+        axes[2].set_xlabel("step"); axes[2].set_title("quick pose check"); axes[2].legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=90)
+    plt.close(fig)
+
+
+def _split_instances(bop, val_images: int, seed: int) -> tuple[list[int], list[int]]:
+    """Hold out whole images (every instance of them): about ``val_images`` images, chosen by a hash."""
+    images = sorted({(r.scene, r.im) for r in bop.instances})
+    rng = np.random.default_rng(seed)
+    n_val = min(val_images, max(1, len(images) // 10)) if len(images) > 1 else 0
+    val_set = {images[i] for i in rng.choice(len(images), n_val, replace=False)} if n_val else set()
+    train_idx = [i for i, r in enumerate(bop.instances) if (r.scene, r.im) not in val_set]
+    val_idx = [i for i, r in enumerate(bop.instances) if (r.scene, r.im) in val_set]
+    return train_idx, val_idx
+
+
+def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1):
+    from surftrack.render import worker_context
+
+    sampler = None
+    if world > 1:
+        sampler = torch.utils.data.distributed.DistributedSampler(ds, world, rank, shuffle=shuffle, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    return torch.utils.data.DataLoader(
+        ds, batch_size=batch, shuffle=shuffle and sampler is None, sampler=sampler, drop_last=shuffle,
+        num_workers=workers, generator=g, persistent_workers=workers > 0,
+        multiprocessing_context=worker_context() if workers > 0 else None)  # GL targets need spawn
+
+
+def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | None = None, resume: bool = False,
+          device: str | None = None, progress: bool = True, log_dir: str | Path | None = None) -> dict:
+    """Train on the BOP dataset ``data_dir``; writes ``out`` (checkpoint), and next to it
+    ``<out stem>.metrics.jsonl``, ``<out stem>.curves.png`` and ``<out stem>.fp16.pt``. Returns a summary."""
+    from tqdm import tqdm
+
+    from surftrack.data import BopDataset, CropDataset
+
+    rank, world = _dist()
+    dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if dev.type == "cuda" and world > 1:
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(dev)
+    out = Path(out)
+    log_dir = Path(log_dir) if log_dir else out.parent
+    metrics_path = log_dir / f"{out.stem}.metrics.jsonl"
+    total_steps = steps if steps is not None else cfg.optim.steps
+    seed_everything(cfg.run.seed + rank)
+
+    bop = BopDataset(data_dir, min_visib_fract=cfg.data.min_visib_fract)
+    obj_ids = sorted(bop.models)
+    card = Path(data_dir) / "dataset_card.json"
+    names = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
+    parts = [PartInfo.from_part(o, names.get(str(o), {}).get("instrument", "unknown"), bop.models[o]) for o in obj_ids]
+    train_idx, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed)
+    common = dict(obj_ids=obj_ids, crop=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
+    train_ds = CropDataset(bop, indices=train_idx, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
+                           augment=cfg.data.augment, seed=cfg.run.seed, **common)
+    val_ds = CropDataset(bop, indices=val_idx, jitter=0.0, max_rotation_deg=0.0, augment=None, seed=cfg.run.seed,
+                         **common) if val_idx else None
+
+    start = 0
+    if resume and out.is_file():
+        model, _, blob = load_checkpoint(out, dev)
+        if [p.mesh_sha256 for p in model.parts] != [p.mesh_sha256 for p in parts]:
+            raise ValueError(f"{out}: checkpoint parts do not match the dataset's models; cannot resume")
+        trainer = Trainer(model, cfg, dev)
+        if blob.get("optimizer"):
+            trainer.optimizer.load_state_dict(blob["optimizer"])
+        start = int(blob["step"])
+        if "torch_rng" in blob.get("extra", {}):
+            torch.set_rng_state(blob["extra"]["torch_rng"])
+    else:
+        model = SurfSurg6D(parts, cfg.model).to(dev)
+        if dev.type == "cuda":
+            model = model.to(memory_format=torch.channels_last)
+        trainer = Trainer(model, cfg, dev)
+        if rank == 0 and metrics_path.exists():
+            metrics_path.unlink()
+    module = model
+    if world > 1:
+        module = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+
+    loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world)
+    val_loader = _loader(val_ds, cfg.optim.batch, 0, cfg.run.seed, False) if val_ds is not None else None
+
+    def log(row: dict) -> None:
+        if rank == 0:
+            metrics_path.parent.mkdir(parents=True, exist_ok=True)
+            with metrics_path.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+
+    def save(step: int) -> None:
+        if rank == 0:
+            save_checkpoint(out, model, cfg, step, trainer.optimizer, extra={"torch_rng": torch.get_rng_state()})
+
+    step, t0, seen = start, time.perf_counter(), 0
+    bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", disable=not progress or rank > 0)
+    epoch = 0
+    last_val: dict = {}
+    try:
+        while step < total_steps:
+            if hasattr(loader.sampler, "set_epoch"):
+                loader.sampler.set_epoch(epoch)
+            train_ds.set_epoch(epoch)
+            for batch in loader:
+                if step >= total_steps:
+                    break
+                logs = trainer.step(batch, module)
+                step += 1
+                seen += batch["image"].shape[0] * world
+                bar.update(1)
+                if step % cfg.run.log_every == 0 or step == total_steps:
+                    rate = seen / (time.perf_counter() - t0)
+                    log({"kind": "train", "step": step, "images_per_s": rate, **logs})
+                    bar.set_postfix(loss=f"{logs['total']:.3f}", img_s=f"{rate:.1f}")
+                if val_loader is not None and (step % cfg.run.val_every == 0 or step == total_steps):
+                    last_val = validate(trainer, val_loader)
+                    log({"kind": "val", "step": step, **last_val})
+                    if rank == 0:
+                        plot_curves(metrics_path, log_dir / f"{out.stem}.curves.png")
+                if step % cfg.run.ckpt_every == 0:
+                    save(step)
+            epoch += 1
+    finally:
+        bar.close()
+        if step > start:
+            save(step)
+    if rank == 0:
+        save_checkpoint(out.with_suffix(".fp16.pt"), model, cfg, step, half=True)
+    return {"steps": step, "images_per_s": seen / max(time.perf_counter() - t0, 1e-9), "val": last_val,
+            "checkpoint": str(out), "metrics": str(metrics_path)}
+
+
+@torch.no_grad()
+def validate(trainer: Trainer, loader) -> dict:
+    """Mean losses and the quick pose check over the held-out crops."""
+    model = trainer.model
+    model.eval()
+    gen = torch.Generator(device=trainer.device).manual_seed(0)
+    sums: dict[str, float] = {}
+    n = 0
+    poses: list[dict] = []
+    for batch in loader:
+        out = trainer.losses(batch, gen=gen)
+        for k, v in out.items():
+            sums[k] = sums.get(k, 0.0) + float(v) * batch["image"].shape[0]
+        n += batch["image"].shape[0]
+        poses += quick_pose_eval(model, batch, trainer.bank, trainer.device)
+    res = {k: v / max(n, 1) for k, v in sums.items()}
+    if poses:
+        res["re_median"] = float(np.median([p["re"] for p in poses]))
+        res["te_median"] = float(np.median([p["te"] for p in poses]))
+        res["add10"] = float(np.mean([p["add10"] for p in poses]))
+        res["val_crops"] = len(poses)
+    return res
