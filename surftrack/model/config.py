@@ -31,8 +31,8 @@ class DataCfg:
     mask_mode: str = "amodal"
     min_visib_fract: float = 0.1
     augment: dict[str, Any] = field(default_factory=dict)
-    real_data: str | None = None     # a second (real) BOP dataset mixed in at real_ratio
-    real_ratio: float = 0.5          # the paper's syn:real 1:1
+    real_data: str | None = None     # a second (real) BOP dataset with the same models, mixed into each batch
+    syn_real_ratio: tuple[int, int] = (1, 1)  # the paper's syn:real 1:1
 
 
 @dataclass(frozen=True)

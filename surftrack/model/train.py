@@ -176,26 +176,32 @@ def plot_curves(metrics_path: Path, png_path: Path) -> None:
 
 def _split_instances(bop, val_images: int, seed: int) -> tuple[list[int], list[int]]:
     """Hold out whole images (every instance of them): about ``val_images`` images, chosen by a hash."""
-    images = sorted({(r.scene, r.im) for r in bop.instances})
+    images = sorted({(r.scene_id, r.im_id) for r in bop.instances})
     rng = np.random.default_rng(seed)
     n_val = min(val_images, max(1, len(images) // 10)) if len(images) > 1 else 0
     val_set = {images[i] for i in rng.choice(len(images), n_val, replace=False)} if n_val else set()
-    train_idx = [i for i, r in enumerate(bop.instances) if (r.scene, r.im) not in val_set]
-    val_idx = [i for i, r in enumerate(bop.instances) if (r.scene, r.im) in val_set]
+    train_idx = [i for i, r in enumerate(bop.instances) if (r.scene_id, r.im_id) not in val_set]
+    val_idx = [i for i, r in enumerate(bop.instances) if (r.scene_id, r.im_id) in val_set]
     return train_idx, val_idx
 
 
-def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1):
+def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1, sampler=None):
     from surftrack.render import worker_context
 
-    sampler = None
-    if world > 1:
+    if sampler is None and world > 1:
         sampler = torch.utils.data.distributed.DistributedSampler(ds, world, rank, shuffle=shuffle, seed=seed)
     g = torch.Generator().manual_seed(seed)
+    # Target rendering needs GL, which needs spawned (not forked) workers; workers are not persistent so
+    # that each epoch's CropDataset.set_epoch reaches them.
     return torch.utils.data.DataLoader(
         ds, batch_size=batch, shuffle=shuffle and sampler is None, sampler=sampler, drop_last=shuffle,
-        num_workers=workers, generator=g, persistent_workers=workers > 0,
-        multiprocessing_context=worker_context() if workers > 0 else None)  # GL targets need spawn
+        num_workers=workers, generator=g, persistent_workers=False,
+        multiprocessing_context=worker_context() if workers > 0 else None)
+
+
+def _subset(ds, bop_indices: list[int]):
+    keep = set(bop_indices)
+    return torch.utils.data.Subset(ds, [pos for pos, k in enumerate(ds.items) if k in keep])
 
 
 def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | None = None, resume: bool = False,
@@ -204,7 +210,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     ``<out stem>.metrics.jsonl``, ``<out stem>.curves.png`` and ``<out stem>.fp16.pt``. Returns a summary."""
     from tqdm import tqdm
 
-    from surftrack.data import BopDataset, CropDataset
+    from surftrack.data import BopDataset, CropDataset, MixedSampler, mixed_dataset
 
     rank, world = _dist()
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -223,11 +229,25 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     names = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
     parts = [PartInfo.from_part(o, names.get(str(o), {}).get("instrument", "unknown"), bop.models[o]) for o in obj_ids]
     train_idx, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed)
-    common = dict(obj_ids=obj_ids, crop=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
-    train_ds = CropDataset(bop, indices=train_idx, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
-                           augment=cfg.data.augment, seed=cfg.run.seed, **common)
-    val_ds = CropDataset(bop, indices=val_idx, jitter=0.0, max_rotation_deg=0.0, augment=None, seed=cfg.run.seed,
-                         **common) if val_idx else None
+    common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
+    syn_ds = CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
+                         augment=cfg.data.augment, seed=cfg.run.seed, **common)
+    epoch_datasets = [syn_ds]
+    train_ds = _subset(syn_ds, train_idx)
+    sampler = None
+    if cfg.data.real_data:
+        real_bop = BopDataset(cfg.data.real_data, min_visib_fract=cfg.data.min_visib_fract)
+        if {o: real_bop.models[o].mesh_hash for o in real_bop.models} != {o: bop.models[o].mesh_hash for o in obj_ids
+                                                                       if o in real_bop.models} or not real_bop.models:
+            raise ValueError(f"{cfg.data.real_data}: its models differ from those of {data_dir}")
+        real_ds = CropDataset(real_bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
+                              augment=cfg.data.augment, seed=cfg.run.seed + 1, **common)
+        epoch_datasets.append(real_ds)
+        sampler = MixedSampler(len(train_ds), len(real_ds), cfg.optim.batch, tuple(cfg.data.syn_real_ratio),
+                               seed=cfg.run.seed)
+        train_ds = mixed_dataset(train_ds, real_ds)
+    val_ds = _subset(CropDataset(bop, jitter=0.0, augment=None, seed=cfg.run.seed, **common), val_idx) \
+        if val_idx else None
 
     start = 0
     if resume and out.is_file():
@@ -251,7 +271,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     if world > 1:
         module = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
 
-    loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world)
+    loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world, sampler)
     val_loader = _loader(val_ds, cfg.optim.batch, 0, cfg.run.seed, False) if val_ds is not None else None
 
     def log(row: dict) -> None:
@@ -272,7 +292,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         while step < total_steps:
             if hasattr(loader.sampler, "set_epoch"):
                 loader.sampler.set_epoch(epoch)
-            train_ds.set_epoch(epoch)
+            for d in epoch_datasets:
+                d.set_epoch(epoch)
             for batch in loader:
                 if step >= total_steps:
                     break
