@@ -64,6 +64,25 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_synth_clip(args: argparse.Namespace) -> int:
+    from surftrack.synth.clip import ClipConfig, make_clip
+
+    overrides = {"seconds": args.seconds, "fps": args.fps}
+    if args.second is not None:
+        overrides["second_instrument"] = None if args.second.lower() == "none" else args.second
+    if args.seconds <= 0 or args.fps <= 0:
+        raise CLIError(f"--seconds and --fps must be positive, got {args.seconds} and {args.fps}")
+    try:
+        cfg = ClipConfig.from_dict(overrides)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    s = make_clip(Path(args.out), args.instrument, cfg, seed=args.seed, progress=not args.quiet)
+    print(f"surftrack synth-clip: {s['frames']} frames in {s['seconds']:.1f} s; main tool out of view in "
+          f"{s['main_out_of_view_frames']} frames, occluded by the second tool in {s['occluded_frames']}")
+    print(f"wrote {s['video']}, {s['camera']}, {s['gt']}, {s['det']}")
+    return 0
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from surftrack.model.config import load_train_config
     from surftrack.model.train import train
@@ -103,6 +122,15 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--config", help="synthesis YAML (default: configs/synth/default.yaml)")
     sy.add_argument("--quiet", action="store_true", help="no progress bar")
     sy.set_defaults(func=_cmd_synth)
+    sc = sub.add_parser("synth-clip", help="make a synthetic tracking clip: video, camera, ground truth, detections")
+    sc.add_argument("--out", required=True, help="output folder")
+    sc.add_argument("--instrument", default="lnd", help="the main instrument (default: lnd)")
+    sc.add_argument("--second", help="the crossing instrument (default: cadiere_forceps; 'none' for a single tool)")
+    sc.add_argument("--seconds", type=float, default=10.0)
+    sc.add_argument("--fps", type=float, default=30.0)
+    sc.add_argument("--seed", type=int, default=0)
+    sc.add_argument("--quiet", action="store_true", help="no progress bar")
+    sc.set_defaults(func=_cmd_synth_clip)
     tr = sub.add_parser("train", help="train a SurfSurg6D model on a BOP dataset")
     tr.add_argument("--config", default="lite", help="training YAML or a name in configs/train (default: lite)")
     tr.add_argument("--data", required=True, help="BOP dataset folder (e.g. made by `surftrack synth`)")

@@ -10,10 +10,6 @@ from surftrack.instruments import Instrument
 from surftrack.synth.sampling import InstrumentSample
 from surftrack.synth.tissue import Tissue
 
-_FAR = np.eye(4)
-_FAR[:3, 3] = 1e7  # where unused collision objects are parked
-
-
 def in_view(sample: InstrumentSample, camera: PinholeCamera, margin: float, min_depth: float) -> bool:
     """Wrist and tool tips project at least ``margin`` px inside the image, at least ``min_depth`` mm away."""
     kps = sample.keypoints()
@@ -52,43 +48,45 @@ class TissueCollision:
 
 
 class PartCollision:
-    """Mesh-mesh collisions (python-fcl) among the parts of up to ``slots`` instruments, including the
-    shaft extensions. Within one instrument the extension overlaps its own shaft by design: not counted."""
+    """Mesh-mesh collisions (python-fcl) among the parts of up to ``slots`` posed instruments, shaft
+    extensions included. One collision manager per (slot, instrument): parts within an instrument are
+    tested with each other (except an extension with its own shaft, which overlap by design), and every
+    pair of instruments across managers."""
 
     def __init__(self, instruments: list[Instrument], slots: int = 2):
-        self.manager = trimesh.collision.CollisionManager()
-        self.names: dict[tuple[int, str], list[str]] = {}
+        self.managers: dict[tuple[int, str], tuple[trimesh.collision.CollisionManager, list[tuple[str, str]]]] = {}
         for slot in range(slots):
             for inst in instruments:
+                m, names = trimesh.collision.CollisionManager(), []
                 for pname, part in inst.parts.items():
-                    self._add(slot, inst, pname, part.mesh, f"{slot}|{inst.name}|{pname}")
+                    m.add_object(pname, part.mesh)
+                    names.append((pname, pname))
                 for k, att in enumerate(inst.attachments):
-                    self._add(slot, inst, att.part, att.mesh, f"{slot}|{inst.name}|{att.part}|ext{k}")
+                    m.add_object(f"{att.part}|ext{k}", att.mesh)
+                    names.append((f"{att.part}|ext{k}", att.part))
+                self.managers[(slot, inst.name)] = (m, names)
 
-    def _add(self, slot: int, inst: Instrument, part: str, mesh: trimesh.Trimesh, name: str) -> None:
-        self.manager.add_object(name, mesh, transform=_FAR)
-        self.names.setdefault((slot, inst.name), []).append(name)
+    def collisions_of(self, posed: list[tuple[Instrument, dict[str, np.ndarray]]]) -> list[tuple[str, str]]:
+        """Colliding pairs ``slot|part`` for instruments given as (instrument, part poses), in slot order."""
+        managers = []
+        for slot, (inst, poses) in enumerate(posed):
+            m, names = self.managers[(slot, inst.name)]
+            for obj, part in names:
+                m.set_transform(obj, poses[part])
+            managers.append(m)
+        out = []
+        for slot, m in enumerate(managers):
+            hit, pairs = m.in_collision_internal(return_names=True)
+            if hit:
+                out += [(f"{slot}|{a}", f"{slot}|{b}") for a, b in sorted(tuple(sorted(p)) for p in pairs)
+                        if "|ext" not in a and "|ext" not in b]
+        for i in range(len(managers)):
+            for j in range(i + 1, len(managers)):
+                hit, pairs = managers[i].in_collision_other(managers[j], return_names=True)
+                if hit:
+                    out += [(f"{i}|{a}", f"{j}|{b}") for a, b in sorted(pairs)]
+        return out
 
     def collisions(self, samples: list[InstrumentSample]) -> list[tuple[str, str]]:
-        """Colliding object pairs ``slot|instrument|part[|extK]`` for the posed instruments."""
-        for key, names in self.names.items():
-            for n in names:
-                self.manager.set_transform(n, _FAR)
-        active = set()
-        for slot, s in enumerate(samples):
-            for n in self.names[(slot, s.instrument.name)]:
-                self.manager.set_transform(n, s.poses[n.split("|")[2]])
-                active.add(n)
-        hit, pairs = self.manager.in_collision_internal(return_names=True)
-        if not hit:
-            return []
-        out = []
-        for a, b in sorted(tuple(sorted(p)) for p in pairs):
-            if a not in active or b not in active:  # parked objects overlap each other far away
-                continue
-            sa, sb = a.split("|"), b.split("|")
-            same_instrument = sa[0] == sb[0]
-            if same_instrument and (len(sa) == 4 or len(sb) == 4):
-                continue
-            out.append((a, b))
-        return out
+        """Colliding pairs for sampled instruments (see :meth:`collisions_of`)."""
+        return self.collisions_of([(s.instrument, s.poses) for s in samples])
