@@ -129,14 +129,20 @@ def sample_instrument(instrument: Instrument, cfg: PoseCfg, rng: np.random.Gener
     theta, phi = np.radians(uniform(rng, cfg.shaft_to_axis_deg)), rng.uniform(0, 2 * np.pi)
     shaft = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
     d_wanted = uniform(rng, cfg.tip_to_tissue_mm)
+    # Slide the tip along the pixel's ray until the tissue ahead along the shaft is d_wanted away (a few
+    # secant-like steps; the tissue is smooth at this scale).
     tip = under * max(0.0, 1.0 - d_wanted * np.cos(theta) / max(under[2], 1e-6))
-    if tip[2] < cfg.min_depth_mm:
-        return None
-    target = ray_hit_tissue(tissue, tissue_pose, shaft, origin=tip)
-    if target is None:
-        return None
-    d = float(np.linalg.norm(target - tip))
-    if not cfg.tip_to_tissue_mm[0] <= d <= cfg.tip_to_tissue_mm[1]:
+    for _ in range(4):
+        if tip[2] < cfg.min_depth_mm:
+            return None
+        target = ray_hit_tissue(tissue, tissue_pose, shaft, origin=tip)
+        if target is None:
+            return None
+        d = float(np.linalg.norm(target - tip))
+        if abs(d - d_wanted) < 1.0:
+            break
+        tip = under + (tip - under) * (d_wanted / max(d, 1e-6))
+    if tip[2] < cfg.min_depth_mm or not cfg.tip_to_tissue_mm[0] <= d <= cfg.tip_to_tissue_mm[1]:
         return None
     pitch_point = tip - _tip_distance(instrument) * shaft
     trocar = pitch_point - rng.uniform(60.0, 140.0) * shaft
