@@ -9,6 +9,8 @@ from typing import Any
 
 import yaml
 
+from surftrack.configio import build_dataclass
+
 
 class TrainConfigError(ValueError):
     """A malformed training configuration; the message names the file and the key."""
@@ -80,7 +82,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "config") -> TrainConfig:
-        return _build(cls, data, where)
+        return build_dataclass(cls, data, where, TrainConfigError)
 
     def replace(self, **sections: dict) -> TrainConfig:
         """A copy with some fields of some sections replaced: ``cfg.replace(optim={"steps": 10})``."""
@@ -88,28 +90,6 @@ class TrainConfig:
         for k, v in sections.items():
             d[k].update(v)
         return TrainConfig.from_dict(d)
-
-
-def _build(cls: type, data: Any, where: str) -> Any:
-    if data is None:
-        return cls()
-    if not isinstance(data, dict):
-        raise TrainConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(data) - set(fields)
-    if unknown:
-        raise TrainConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
-    kwargs = {}
-    defaults = cls()
-    for k, v in data.items():
-        d = getattr(defaults, k)
-        if dataclasses.is_dataclass(d):
-            kwargs[k] = _build(type(d), v, f"{where}.{k}")
-        elif isinstance(d, tuple) and isinstance(v, list):
-            kwargs[k] = tuple(v)
-        else:
-            kwargs[k] = v
-    return cls(**kwargs)
 
 
 def load_train_config(path: str | Path) -> TrainConfig:
@@ -123,7 +103,7 @@ def load_train_config(path: str | Path) -> TrainConfig:
         data = yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
         raise TrainConfigError(f"{p}: cannot read training config: {e}") from None
-    cfg = _build(TrainConfig, data, str(p))
+    cfg = build_dataclass(TrainConfig, data, str(p), TrainConfigError)
     if cfg.data.mask_mode not in ("amodal", "modal"):
         raise TrainConfigError(f"{p}: data.mask_mode must be 'amodal' or 'modal', got {cfg.data.mask_mode!r}")
     return cfg

@@ -1,0 +1,36 @@
+"""Building nested frozen config dataclasses from YAML mappings, with errors that name file and key."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+
+def build_dataclass(cls: type, data: Any, where: str, error: type[Exception] = ValueError) -> Any:
+    """An instance of dataclass ``cls`` from the mapping ``data``; missing keys keep their defaults.
+
+    Nested dataclass fields are built recursively, YAML lists become tuples where the default is a
+    tuple, and an unknown key raises ``error`` naming ``where`` (the file) and the key's path.
+    """
+    if data is None:
+        return cls()
+    if not isinstance(data, dict):
+        raise error(f"{where}: expected a mapping, got {type(data).__name__}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise error(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(names)}")
+    defaults = cls()
+    kwargs = {}
+    for k, v in data.items():
+        d = getattr(defaults, k)
+        if dataclasses.is_dataclass(d):
+            kwargs[k] = build_dataclass(type(d), v, f"{where}.{k}", error)
+        elif isinstance(d, tuple) and isinstance(v, list):
+            kwargs[k] = tuple(v)
+        else:
+            kwargs[k] = v
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise error(f"{where}: {e}") from None
