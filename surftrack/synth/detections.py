@@ -8,9 +8,9 @@ A detection file lists, per video frame, boxes of instrument parts::
                  "detections": [{"part_id": 1, "bbox": [x, y, w, h], "score": 0.93}, ...]}, ...]}
 
 ``parts`` maps a track id (an integer written as a string key) to the part it denotes. Boxes are in
-pixels like BOP: ``x, y`` are the top-left pixel-EDGE coordinates and the box covers ``[x, x + w] x
-[y, y + h]`` (``w = xmax - xmin``); with pixel centres at integer coordinates the full image is
-``[0, 0, W, H]``. Writers clip boxes to the image. ``score`` is in [0, 1]; ``time`` is the frame's
+pixel-EDGE coordinates: pixel ``u`` spans ``[u, u + 1]``, the full image is ``[0, 0, W, H]`` and a box
+covers ``[x, x + w] x [y, y + h]``. A BOP box ``[x, y, w, h]`` over pixel indices (``w = xmax - xmin``)
+is therefore the edge box ``[x, y, w + 1, h + 1]``. Writers clip boxes to the image. ``score`` is in [0, 1]; ``time`` is the frame's
 presentation time in seconds. A false detection carries the id of some listed part. An optional
 ``meta`` object holds free-form provenance.
 
