@@ -1,5 +1,5 @@
 """Synthetic scenes: procedural tissue, instrument placement, datasets and clips."""
 
-from surftrack.synth.tissue import Tissue, procedural_tissue
+from surftrack.synth.tissue import Tissue, image_backdrop, load_tissue_mesh, procedural_tissue
 
-__all__ = ["Tissue", "procedural_tissue"]
+__all__ = ["Tissue", "image_backdrop", "load_tissue_mesh", "procedural_tissue"]

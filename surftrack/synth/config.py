@@ -9,6 +9,8 @@ from typing import Any
 
 import yaml
 
+from surftrack.configio import build_dataclass
+
 Range = tuple[float, float]
 
 
@@ -40,6 +42,14 @@ class TissueCfg:
     jitter_mm: float = 4.0
     jitter_deg: float = 4.0
     min_coverage: float = 0.97
+    source: str = "procedural"     # procedural | mesh | images
+    mesh: str | None = None        # source 'mesh': an OBJ/PLY tissue surface (see synth.tissue.load_tissue_mesh)
+    mesh_units: str = "mm"         # mm | cm | m
+    images: str | None = None      # source 'images': an image file or a folder of them (one per tissue group)
+
+
+TISSUE_SOURCES = ("procedural", "mesh", "images")
+MESH_UNITS = ("mm", "cm", "m")
 
 
 @dataclass(frozen=True)
@@ -115,6 +125,7 @@ class SynthConfig:
         for ok, msg in checks:
             if not ok:
                 raise ConfigError(msg)
+        self._validate_tissue_source()
         for name in ("camera", "tissue", "pose", "lighting"):
             for f in dataclasses.fields(getattr(self, name)):
                 v = getattr(getattr(self, name), f.name)
@@ -123,27 +134,39 @@ class SynthConfig:
         return self
 
 
-def _build(cls: type, data: Any, where: str) -> Any:
-    if not dataclasses.is_dataclass(cls):
-        return data
-    if data is None:
-        return cls()
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(data) - set(fields)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
-    kwargs = {}
-    for k, v in data.items():
-        default = getattr(cls(), k) if k in fields else None
-        if dataclasses.is_dataclass(default):
-            kwargs[k] = _build(type(default), v, f"{where}.{k}")
-        elif isinstance(default, tuple) and isinstance(v, list):
-            kwargs[k] = tuple(v)
-        else:
-            kwargs[k] = v
-    return cls(**kwargs)
+    def _validate_tissue_source(self) -> None:
+        from surftrack.synth.tissue import image_files
+
+        t = self.tissue
+        if t.source not in TISSUE_SOURCES:
+            raise ConfigError(f"tissue.source: {t.source!r} is not one of {list(TISSUE_SOURCES)}")
+        if t.mesh_units not in MESH_UNITS:
+            raise ConfigError(f"tissue.mesh_units: {t.mesh_units!r} is not one of {list(MESH_UNITS)}")
+        if t.source == "procedural":
+            return
+        key = t.source  # 'mesh' or 'images': the key holding the path
+        path = getattr(t, key)
+        if not isinstance(path, (str, Path)) or not str(path):
+            raise ConfigError(f"tissue.{key}: tissue.source is {t.source!r} but tissue.{key} gives no path")
+        if key == "mesh" and not Path(path).is_file():
+            raise ConfigError(f"tissue.mesh: tissue mesh file not found: {path}")
+        if key == "images":
+            try:
+                image_files(path)
+            except ValueError as e:
+                raise ConfigError(f"tissue.images: {e}") from None
+
+
+def _resolve_tissue_paths(data: dict, base: Path) -> None:
+    """Relative ``tissue.mesh`` / ``tissue.images`` paths in a config file are tried against the working
+    directory first, then against the config file's folder."""
+    tissue = data.get("tissue")
+    if not isinstance(tissue, dict):
+        return
+    for key in ("mesh", "images"):
+        v = tissue.get(key)
+        if isinstance(v, str) and v and not Path(v).is_absolute() and not Path(v).exists() and (base / v).exists():
+            tissue[key] = str(base / v)
 
 
 def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> SynthConfig:
@@ -155,11 +178,11 @@ def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] 
         data = yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
         raise ConfigError(f"{p}: cannot read synthesis config: {e}") from None
-    data.update(overrides or {})
+    if isinstance(data, dict):
+        _resolve_tissue_paths(data, p.parent)
+        data.update(overrides or {})
     try:
-        return _build(SynthConfig, data, str(p)).validate()
-    except ConfigError as e:
+        return build_dataclass(SynthConfig, data, str(p), ConfigError).validate()
+    except ConfigError as e:  # validate() messages do not name the file yet
         msg = str(e)
         raise ConfigError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
-    except TypeError as e:
-        raise ConfigError(f"{p}: {e}") from None

@@ -30,9 +30,8 @@ from surftrack.synth.sampling import (
     sample_instrument,
     sample_lights,
     sample_tissue_pose,
-    uniform,
 )
-from surftrack.synth.tissue import procedural_tissue
+from surftrack.synth.tissue import TissueSource
 
 MAX_INSTRUMENTS = 2
 REJECTIONS = ("geometry", "out_of_view", "tissue_collision", "part_collision", "tissue_coverage", "low_visibility")
@@ -65,21 +64,24 @@ class SceneGenerator:
         self.part_check = PartCollision(list(self.instruments.values()), slots=MAX_INSTRUMENTS)
         self.effects = CameraEffects.from_dict(cfg.effects)
         self.pad = max(cfg.image.width, cfg.image.height) // 2
+        self.tissue_source = TissueSource(cfg.tissue)
         self._tissue_key: tuple | None = None
         self._tissue_id: int | None = None
+        self._tissue = None
 
     # ------------------------------------------------------------------ tissue per group
     def _group_tissue(self, scene_id: int, group: int):
+        """The group's tissue (per ``tissue.source``) and base pose, from a generator seeded by (seed, scene,
+        group); a mesh source yields the same Tissue every time, which stays uploaded."""
         key = (scene_id, group)
         if key != self._tissue_key:
-            t = self.cfg.tissue
             rng = np.random.default_rng([self.seed, scene_id, group, 7])
-            tissue = procedural_tissue(rng, extent=tuple(t.extent_mm), spacing=t.spacing_mm, texel=t.texel_mm,
-                                       fold_depth=uniform(rng, t.fold_depth_mm))
-            pose = sample_tissue_pose(t, rng)
-            if self._tissue_id is not None:
-                self.renderer.remove(self._tissue_id)
-            self._tissue_id = tissue.add_to(self.renderer)
+            tissue = self.tissue_source(rng)
+            pose = sample_tissue_pose(self.cfg.tissue, rng)
+            if tissue is not self._tissue or self._tissue_id is None:
+                if self._tissue_id is not None:
+                    self.renderer.remove(self._tissue_id)
+                self._tissue_id = tissue.add_to(self.renderer)
             self._tissue, self._tissue_pose, self._tissue_key = tissue, pose, key
         return self._tissue, self._tissue_pose
 
