@@ -134,7 +134,7 @@ def quick_pose_eval(model: SurfSurg6D, batch: dict, bank: torch.Tensor, device: 
             K = batch["K"][b].numpy().astype(np.float64)
             ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, uv, K, None, reprojectionError=3.0, iterationsCount=200,
                                                      flags=cv2.SOLVEPNP_EPNP)
-            if ok:
+            if ok and np.isfinite(rvec).all() and np.isfinite(tvec).all():
                 R = cv2.Rodrigues(rvec)[0]
                 t = tvec.ravel()
                 Rg, tg = batch["R"][b].numpy().astype(np.float64), batch["t"][b].numpy().astype(np.float64)
