@@ -303,7 +303,7 @@ def test_coord_map_reprojects_onto_its_own_pixels(bop, crops):
         inside = (uv >= 0).all(1) & (uv < 96).all(1)
         hit = valid[uv[inside, 1], uv[inside, 0]]
         near = dilate(valid, 1)[uv[inside, 1], uv[inside, 0]]
-        assert inside.sum() > 1000 and hit.mean() > 0.9 and near.all()  # misses only by rounding at the outline
+        assert inside.sum() > 1000 and hit.mean() > 0.85 and near.all()  # misses only by rounding at the outline
     assert worst < 0.5, worst
 
 
