@@ -1,0 +1,270 @@
+"""Per-part 6D pose from an image and detection boxes with a SurfSurg6D model (SurfEmb-style inference).
+
+Crops are made as in training (:mod:`surftrack.data.dataset`): a square box around the detection box,
+side = the model's ``data.scale`` x the box's longer side, no rotation, warped bilinearly to the model's
+crop size. All crops of all frames go through the network together (in batches of ``max_batch``); the
+rest runs per crop: correspondence field, hypotheses, scoring, refinement
+(:mod:`surftrack.pose.solver`). Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
+keeps the camera frame), t in mm.
+
+Boxes are pixel-EDGE boxes ``(x, y, w, h)`` as in ``det.json`` (:mod:`surftrack.synth.detections`): the
+box covers ``[x, x + w] x [y, y + h]`` with pixel centres at integers. A BOP ``bbox`` (w = xmax - xmin
+over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`box_from_bop`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from surftrack.data.crops import warp_image
+from surftrack.geometry import PinholeCamera, crop_affine
+from surftrack.model.checkpoint import load_checkpoint
+from surftrack.model.config import DataCfg
+from surftrack.model.surfsurg6d import SurfSurg6D
+from surftrack.pose.correspondence import build_field, grid_camera, pool_to_grid
+from surftrack.pose.preset import Preset, get_preset
+from surftrack.pose.solver import StageTimer, solve_field
+from surftrack.pose.surface import bank_is_cached, part_bank
+
+Box = tuple[float, float, float, float]
+STAGES = ("crop", "forward", "correspondence", "hypotheses", "scoring", "refinement")
+
+
+@dataclass
+class PartPose:
+    """The pose of one requested part. ``R`` (3, 3), ``t`` (3,) mm: model-to-camera. ``score``: per-pixel
+    log-likelihood ratio of the pose (:mod:`surftrack.pose.scoring`; higher is better, about 0 means the
+    network sees nothing that agrees), ``n_inliers``: grid pixels whose most likely correspondence
+    reprojects within ``inlier_px``. ``ok`` is False only if no hypothesis could be solved (the pose is then
+    a placeholder on the box's ray). ``timings``: ms per stage (``forward`` and ``crop`` are this part's
+    share of the batch; ``keys`` only on the first use of a part, when its surface keys are computed and
+    cached), ``total`` their sum. ``crop_box`` (x0, y0, x1, y1) pixel edges and ``crop_K`` the
+    crop's intrinsics."""
+
+    obj_id: int
+    part: str
+    instrument: str
+    R: np.ndarray
+    t: np.ndarray
+    score: float
+    n_inliers: int
+    ok: bool
+    timings: dict[str, float]
+    crop_box: Box
+    crop_K: np.ndarray
+    image_index: int = 0
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def pose(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+
+def box_from_bop(bbox) -> Box:
+    """The edge box (x, y, w, h) of a BOP ``bbox`` [x, y, w, h] (w = xmax - xmin over pixel indices)."""
+    x, y, w, h = (float(v) for v in bbox)
+    return (x, y, w + 1.0, h + 1.0)
+
+
+def square_crop_box(box_xywh: Box, scale: float) -> Box:
+    """Square edge box (x0, y0, x1, y1): the box's centre, side ``scale`` x its longer side (as
+    :func:`surftrack.data.crops.crop_box` for the same pixels, without jitter)."""
+    x, y, w, h = box_xywh
+    cx, cy, side = x + w / 2.0, y + h / 2.0, max(float(scale) * max(w, h), 1.0)
+    return (cx - side / 2.0, cy - side / 2.0, cx + side / 2.0, cy + side / 2.0)
+
+
+@dataclass
+class _Crop:
+    image_index: int
+    obj_id: int
+    part_index: int
+    box: Box
+    crop_box: Box
+    K_crop: np.ndarray
+    pixels: np.ndarray
+
+
+class PoseEstimator:
+    """``PoseEstimator(model_or_checkpoint, preset="accurate" | "fast" | Preset, device=None)``.
+
+    ``model_or_checkpoint``: a :class:`SurfSurg6D` (put in eval mode and moved to ``device``; crop size
+    and box scale default to the training defaults, 224 and 1.2, unless given) or a checkpoint path (its
+    training config gives both). ``device`` defaults to CUDA when available. Surface samples and their
+    keys are computed once per (model, part, count) and cached (:func:`surftrack.pose.surface.part_bank`).
+
+    ``solver_threads``: on the CPU, the stages after the network (many small tensor ops) run with this
+    many torch intra-op threads (restored afterwards; None leaves torch's setting). Default 1: measured on
+    2 cores shared with another process, two OpenMP threads made those stages up to 30x slower (the
+    threads wait for each other), and on small ops a second thread gains little even on an idle machine.
+    The network forward always uses torch's setting (``torch.set_num_threads``).
+    """
+
+    def __init__(self, model: SurfSurg6D | str | Path, preset: str | Preset = "accurate",
+                 device: str | torch.device | None = None, crop_size: int | None = None,
+                 box_scale: float | None = None, solver_threads: int | None = 1):
+        self.device = torch.device(device) if device is not None else \
+            torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        self.preset = get_preset(preset)
+        data = DataCfg()
+        if isinstance(model, (str, Path)):
+            model, cfg, _ = load_checkpoint(model, self.device)
+            data = cfg.data
+        elif not isinstance(model, SurfSurg6D):
+            raise ValueError(f"expected a SurfSurg6D model or a checkpoint path, got {type(model).__name__}")
+        self.model = model.to(self.device).eval()
+        self.crop_size = int(crop_size if crop_size is not None else data.crop)
+        self.box_scale = float(box_scale if box_scale is not None else data.scale)
+        if self.crop_size < 8 or not self.box_scale > 0:
+            raise ValueError(f"invalid crop size {self.crop_size} or box scale {self.box_scale}")
+        if solver_threads is not None and int(solver_threads) < 1:
+            raise ValueError(f"solver_threads must be >= 1 or None, got {solver_threads}")
+        self.solver_threads = None if solver_threads is None else int(solver_threads)
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return [p.obj_id for p in self.model.parts]
+
+    # ------------------------------------------------------------------ inputs
+    def _boxes(self, boxes, shape: tuple[int, int], where: str) -> list[tuple[int, Box]]:
+        if isinstance(boxes, Mapping):
+            items = list(boxes.items())
+        elif isinstance(boxes, Sequence) and not isinstance(boxes, (str, bytes)):
+            items = list(boxes)
+        else:
+            raise ValueError(f"{where}: boxes must be a dict obj_id -> (x, y, w, h) or a list of (obj_id, box), "
+                             f"got {type(boxes).__name__}")
+        H, W = shape
+        out = []
+        for k, item in enumerate(items):
+            try:
+                obj_id, box = item
+                obj_id = int(obj_id)
+                b = np.asarray(box, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}: box entry {k} must be (obj_id, (x, y, w, h)), got {item!r}") from None
+            if obj_id not in self.obj_ids:
+                raise ValueError(f"{where}: unknown obj_id {obj_id}; the model knows {self.obj_ids}")
+            if b.size != 4 or not np.all(np.isfinite(b)):
+                raise ValueError(f"{where}: box of obj_id {obj_id} must be 4 finite numbers (x, y, w, h), got {box!r}")
+            x, y, w, h = (float(v) for v in b)
+            if w <= 0 or h <= 0:
+                raise ValueError(f"{where}: empty or degenerate box {[x, y, w, h]} for obj_id {obj_id} (need w, h > 0)")
+            if x >= W or y >= H or x + w <= 0 or y + h <= 0:
+                raise ValueError(f"{where}: box {[x, y, w, h]} of obj_id {obj_id} lies outside the {W}x{H} image")
+            out.append((obj_id, (x, y, w, h)))
+        return out
+
+    @staticmethod
+    def _image(image, where: str) -> np.ndarray:
+        if not isinstance(image, np.ndarray):
+            raise ValueError(f"{where}: image must be a numpy array, got {type(image).__name__}")
+        if image.dtype != np.uint8:
+            raise ValueError(f"{where}: image must be uint8 RGB, got dtype {image.dtype}")
+        if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 1 or image.shape[1] < 1:
+            raise ValueError(f"{where}: image must have shape (H, W, 3), got {image.shape}")
+        return image
+
+    @staticmethod
+    def _camera(K, shape: tuple[int, int], where: str) -> PinholeCamera:
+        try:
+            Km = np.asarray(K, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: K must be a 3x3 matrix") from None
+        if Km.shape != (3, 3) or not np.all(np.isfinite(Km)):
+            raise ValueError(f"{where}: K must be a finite 3x3 matrix, got shape {Km.shape}")
+        try:
+            return PinholeCamera(Km, shape[1], shape[0])
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+
+    # ------------------------------------------------------------------ estimation
+    def estimate(self, image: np.ndarray, boxes, K: np.ndarray) -> list[PartPose]:
+        """Poses of the parts in ``boxes`` (dict obj_id -> (x, y, w, h), or a list of (obj_id, box) for
+        repeated ids) seen in ``image`` ((H, W, 3) uint8 RGB) with intrinsics ``K``; one
+        :class:`PartPose` per box, in order."""
+        return self.estimate_batch([image], [boxes], [K])[0]
+
+    @torch.inference_mode()
+    def estimate_batch(self, images: Sequence[np.ndarray], boxes_per_image: Sequence,
+                       Ks: Sequence) -> list[list[PartPose]]:
+        """:meth:`estimate` for several frames; all crops share the network forward passes."""
+        if not (len(images) == len(boxes_per_image) == len(Ks)):
+            raise ValueError(f"need as many box sets and K as images, got {len(images)}, {len(boxes_per_image)} "
+                             f"and {len(Ks)}")
+        S = self.crop_size
+        crops: list[_Crop] = []
+        t0 = time.perf_counter()
+        for i, (img, bx, K) in enumerate(zip(images, boxes_per_image, Ks)):
+            where = f"image {i}"
+            img = self._image(img, where)
+            cam = self._camera(K, img.shape[:2], where)
+            for obj_id, box in self._boxes(bx, img.shape[:2], where):
+                cbox = square_crop_box(box, self.box_scale)
+                M, ccam = crop_affine(cam, cbox, (S, S))
+                crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
+                                   warp_image(img, M, S)))
+        crop_ms = (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
+        results: list[list[PartPose]] = [[] for _ in images]
+        if not crops:
+            return results
+        masks, queries, fwd_ms = self._forward(crops)
+        threads = torch.get_num_threads()
+        limit = self.device.type == "cpu" and self.solver_threads is not None and self.solver_threads != threads
+        try:
+            if limit:
+                torch.set_num_threads(self.solver_threads)
+            for k, c in enumerate(crops):
+                results[c.image_index].append(self._solve(k, c, masks[k], queries[k], crop_ms, fwd_ms))
+        finally:
+            if limit:
+                torch.set_num_threads(threads)
+        return results
+
+    def _forward(self, crops: list[_Crop]) -> tuple[torch.Tensor, torch.Tensor, float]:
+        """Pooled mask logits (B, g, g) and queries (B, E, g, g), and the forward ms per crop."""
+        timer = StageTimer(self.device)
+        masks, queries = [], []
+        use_amp = self.preset.amp and self.device.type == "cuda"
+        with timer("forward"):
+            for s in range(0, len(crops), self.preset.max_batch):
+                part = crops[s:s + self.preset.max_batch]
+                x = torch.from_numpy(np.stack([c.pixels for c in part])).to(self.device)
+                idx = torch.tensor([c.part_index for c in part], device=self.device)
+                with torch.autocast(self.device.type, dtype=torch.float16, enabled=use_amp):
+                    m, q = self.model(self.model.normalize_images(x), idx)
+                m, q = pool_to_grid(m.float(), q.float(), self.preset.stride)
+                masks.append(m)
+                queries.append(q)
+        return torch.cat(masks), torch.cat(queries), timer.ms["forward"] / len(crops)
+
+    def _solve(self, k: int, c: _Crop, mask: torch.Tensor, query: torch.Tensor, crop_ms: float,
+               fwd_ms: float) -> PartPose:
+        P, dev = self.preset, self.device
+        timer = StageTimer(dev)
+        gen = torch.Generator(device=dev)
+        gen.manual_seed(P.seed * 1_000_003 + k)
+        if bank_is_cached(self.model, c.part_index, P.n_samples, P.seed, dev):
+            bank = part_bank(self.model, c.part_index, P.n_samples, P.seed, dev)
+        else:
+            with timer("keys"):  # first use of this part: sample the surface, compute and cache the keys
+                bank = part_bank(self.model, c.part_index, P.n_samples, P.seed, dev)
+        with timer("correspondence"):
+            field_ = build_field(mask, query, bank.keys, P.alpha, P.stride, P.mask_threshold, P.min_active,
+                                 P.max_active, 4 * P.n_hypotheses, gen)
+        box_side = self.crop_size / self.box_scale / P.stride
+        sol = solve_field(field_, bank, grid_camera(c.K_crop, P.stride), box_side, P, gen, timer)
+        ms = dict(timer.ms, crop=crop_ms, forward=fwd_ms)
+        ms = {s: ms.get(s, 0.0) for s in STAGES} | ({"keys": ms["keys"]} if "keys" in ms else {})
+        ms["total"] = sum(ms.values())
+        info = self.model.parts[c.part_index]
+        return PartPose(c.obj_id, info.name, info.instrument, sol.R, sol.t, sol.score, sol.n_inliers, sol.ok, ms,
+                        c.crop_box, c.K_crop, c.image_index, sol.counts)

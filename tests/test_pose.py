@@ -1,0 +1,186 @@
+"""Pose estimation: the batched P3P, the hypothesis / scoring / refinement solver on correspondence
+distributions built from RENDERED object coordinates (noise + 30 % outliers), and a tiny model end to end."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from surftrack.geometry import PinholeCamera, rotation_angle_deg
+from surftrack.instruments import load_instrument
+from surftrack.model.config import ModelCfg
+from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
+from surftrack.pose import PRESETS, PoseEstimator, p3p, p4p, solve_field, solve_quartic
+from surftrack.pose.synthetic import rendered_problem
+
+K_LND = np.array([[818.05, 0.0, 476.31], [0.0, 816.0, 298.18], [0.0, 0.0, 1.0]])  # SurgRIPE LND, 960x540
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One intra-op thread: on a 2-core machine that is busy with other work, two OpenMP threads make
+    the many small tensor ops of the solver several times slower (the threads wait for each other)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def lnd():
+    return load_instrument("large_needle_driver")
+
+
+def _random_problems(n: int, seed: int):
+    """Well-conditioned random P3P problems: points in a 20 mm cube, 50-100 mm in front of the camera,
+    triangles with sides >= 5 mm and area >= 20 mm^2."""
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-10, 10, (4 * n, 4, 3))
+    s = [np.linalg.norm(P[:, i] - P[:, j], axis=1) for i, j in ((0, 1), (0, 2), (1, 2))]
+    area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    P = P[(np.min(s, axis=0) > 5) & (area > 20)][:n]
+    R = Rotation.random(n, random_state=seed).as_matrix()
+    t = np.c_[rng.uniform(-10, 10, (n, 2)), rng.uniform(50, 100, n)]
+    X = np.einsum("hij,hkj->hki", R, P) + t[:, None]
+    return torch.from_numpy(R), torch.from_numpy(t), torch.from_numpy(P), torch.from_numpy(X)
+
+
+def test_quartic_real_roots_match_numpy():
+    c = torch.from_numpy(np.random.default_rng(0).normal(size=(500, 5)))
+    roots, real = solve_quartic(c, real_tol=0.0)
+    for i in range(len(c)):
+        ref = np.roots(c[i].numpy())
+        ref = np.sort(ref[np.abs(ref.imag) < 1e-9].real)
+        got = np.sort(roots[i][real[i]].numpy())
+        assert len(got) == len(ref) and np.allclose(got, ref, atol=1e-9), (c[i], ref, got)
+
+
+def test_p3p_batched_recovers_random_poses():
+    R, t, P, X = _random_problems(5000, seed=1)
+    Rs, ts, valid = p3p(X[:, :3] * 0.37, P[:, :3])  # bearings need not be unit vectors
+    err = torch.linalg.matrix_norm(Rs - R[:, None], dim=(-2, -1)) + torch.linalg.vector_norm(ts - t[:, None], dim=-1)
+    best = torch.where(valid, err, torch.full_like(err, np.inf)).amin(-1)
+    assert float(best.max()) < 1e-6, f"{int((best >= 1e-6).sum())} of {len(best)} problems not solved"
+    dets = torch.linalg.det(Rs[valid])
+    assert torch.allclose(dets, torch.ones_like(dets), atol=1e-9)
+
+
+def test_p4p_picks_the_true_solution():
+    R, t, P, X = _random_problems(3000, seed=2)
+    K = torch.tensor(K_LND)
+    uvw = X @ K.T
+    Rb, tb, err, valid = p4p(uvw[..., :2] / uvw[..., 2:], P, K)
+    assert bool(valid.all()) and float(err.max()) < 1e-6
+    assert float(torch.linalg.matrix_norm(Rb - R, dim=(-2, -1)).max()) < 1e-6
+    assert float(torch.linalg.vector_norm(tb - t, dim=-1).max()) < 1e-6
+
+
+def _rendered(lnd, part_name: str, seed: int, preset):
+    """Rendered LND part at a random pose (seeded), 0.1 mm coordinate noise (about half a grid pixel),
+    30 % outliers (:mod:`surftrack.pose.synthetic`)."""
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+    T[:3, 3] = [rng.uniform(-10, 10), rng.uniform(-5, 5), rng.uniform(45, 80)]
+    return rendered_problem(lnd.parts[part_name], T, PinholeCamera(K_LND, 960, 540), preset, noise_mm=0.1,
+                            outliers=0.3, sigma_mm=0.4, seed=seed)
+
+
+@pytest.mark.parametrize("part_name,seed", [("wrist", 2), ("shaft", 1)])
+def test_solver_recovers_pose_from_rendered_correspondences(lnd, part_name, seed):
+    preset = PRESETS["accurate"]
+    pb = _rendered(lnd, part_name, seed, preset)
+    field = pb.field
+    sol = solve_field(field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0))
+    re, te = float(rotation_angle_deg(sol.R, pb.R)), float(np.linalg.norm(sol.t - pb.t))
+    assert sol.ok and re < 1.0 and te < 1.0, f"{part_name}: RE {re:.3f} deg, TE {te:.3f} mm, {sol.counts}"
+    assert sol.counts["plausible"] > 0 and not sol.counts["relaxed"]
+    assert set(sol.timings) == {"hypotheses", "scoring", "refinement"}
+    # about 70 % of the active pixels are inliers (30 % outliers, the rest within the noise)
+    assert 0.5 * len(field.active) < sol.n_inliers < 0.8 * len(field.active)
+
+
+def test_fast_preset_solver(lnd):
+    preset = PRESETS["fast"]
+    pb = _rendered(lnd, "wrist", 0, preset)
+    sol = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0))
+    re, te = float(rotation_angle_deg(sol.R, pb.R)), float(np.linalg.norm(sol.t - pb.t))
+    assert re < 1.5 and te < 1.5, f"RE {re:.3f} deg, TE {te:.3f} mm, {sol.counts}"
+
+
+@pytest.fixture(scope="module")
+def tiny_model(lnd):
+    parts = [PartInfo.from_part(i + 1, lnd.name, lnd.parts[n]) for i, n in enumerate(lnd.part_names)]
+    torch.manual_seed(0)
+    return SurfSurg6D(parts, ModelCfg(decoder_widths=(16, 16, 16, 16, 16), siren_hidden=32)).eval()
+
+
+BOXES = {1: (300.0, 200.0, 200.0, 120.0), 2: (480.0, 250.0, 60.0, 50.0), 3: (530.0, 260.0, 40.0, 30.0)}
+
+
+@pytest.mark.parametrize("preset", ["fast", "accurate"])
+def test_tiny_model_end_to_end(tiny_model, preset):
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    est = PoseEstimator(tiny_model, preset, device="cpu", crop_size=64)
+    out = est.estimate(img, BOXES, K_LND)
+    assert [p.obj_id for p in out] == [1, 2, 3]
+    assert [p.part for p in out] == ["shaft", "wrist", "jaw_left"]
+    for p in out:
+        assert p.R.shape == (3, 3) and p.t.shape == (3,) and np.all(np.isfinite(p.pose))
+        assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-6) and np.isfinite(p.score) and p.n_inliers >= 0
+        for stage in ("crop", "forward", "correspondence", "hypotheses", "scoring", "refinement", "total"):
+            assert stage in p.timings and p.timings[stage] >= 0
+        assert p.crop_K.shape == (3, 3)
+    # Two frames in one call, a repeated part in the second; the first frame's results are reproducible.
+    frames = est.estimate_batch([img, img[::-1].copy()], [BOXES, [(2, (10.0, 10.0, 50.0, 40.0)), (2, BOXES[2])]],
+                                [K_LND, K_LND])
+    assert [len(f) for f in frames] == [3, 2] and [p.image_index for p in frames[1]] == [1, 1]
+    for a, b in zip(out, frames[0]):
+        assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+    assert est.estimate(img, {}, K_LND) == []
+
+
+def test_estimator_from_checkpoint(tiny_model, tmp_path):
+    from surftrack.model import save_checkpoint
+    from surftrack.model.config import TrainConfig
+
+    cfg = TrainConfig.from_dict({"model": {"decoder_widths": [16, 16, 16, 16, 16], "siren_hidden": 32},
+                                 "data": {"crop": 48, "scale": 1.3}})
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny_model, cfg, step=0)
+    est = PoseEstimator(path, "fast", device="cpu")
+    assert (est.crop_size, est.box_scale, est.obj_ids) == (48, 1.3, [1, 2, 3, 4])
+    img = np.random.default_rng(1).integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    (p,) = est.estimate(img, [(4, (500.0, 260.0, 40.0, 30.0))], K_LND)
+    assert p.part == "jaw_right" and np.all(np.isfinite(p.pose))
+    x0, y0, x1, y1 = p.crop_box  # square, centred on the box, 1.3 x its longer side
+    assert np.allclose([x1 - x0, y1 - y0, (x0 + x1) / 2, (y0 + y1) / 2], [52.0, 52.0, 520.0, 275.0])
+
+
+def test_bad_inputs_raise_clear_errors(tiny_model):
+    est = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64)
+    img = np.zeros((540, 960, 3), np.uint8)
+    with pytest.raises(ValueError, match="unknown obj_id 9"):
+        est.estimate(img, {9: (0, 0, 10, 10)}, K_LND)
+    with pytest.raises(ValueError, match="degenerate box"):
+        est.estimate(img, {1: (10, 10, 0, 20)}, K_LND)
+    with pytest.raises(ValueError, match="degenerate box"):
+        est.estimate(img, {1: (10, 10, 5, -1)}, K_LND)
+    with pytest.raises(ValueError, match="outside"):
+        est.estimate(img, {1: (2000, 10, 50, 50)}, K_LND)
+    with pytest.raises(ValueError, match="4 finite numbers"):
+        est.estimate(img, {1: (10, 10, np.nan, 5)}, K_LND)
+    with pytest.raises(ValueError, match="uint8"):
+        est.estimate(img.astype(np.float32), {1: (10, 10, 50, 50)}, K_LND)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        est.estimate(img[..., 0], {1: (10, 10, 50, 50)}, K_LND)
+    with pytest.raises(ValueError, match="3x3"):
+        est.estimate(img, {1: (10, 10, 50, 50)}, np.eye(2))
+    with pytest.raises(ValueError, match="fx, fy > 0"):
+        est.estimate(img, {1: (10, 10, 50, 50)}, np.diag([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="as many"):
+        est.estimate_batch([img, img], [{1: (10, 10, 50, 50)}], [K_LND])
+    with pytest.raises(ValueError, match="unknown preset"):
+        PoseEstimator(tiny_model, "slow")
+    with pytest.raises(ValueError, match="SurfSurg6D model or a checkpoint"):
+        PoseEstimator(42)
