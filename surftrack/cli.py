@@ -100,6 +100,25 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from surftrack.pose.evaluate import evaluate, markdown_table, write_eval_outputs
+
+    if args.max_images is not None and args.max_images <= 0:
+        raise CLIError(f"--max-images must be positive, got {args.max_images}")
+    if not 0.0 < args.occlusion_threshold <= 1.0:
+        raise CLIError(f"--occlusion-threshold must be in (0, 1], got {args.occlusion_threshold}")
+    r = evaluate(args.model, args.data, split=args.split, preset=args.preset, max_images=args.max_images,
+                 occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet)
+    paths = write_eval_outputs(r, args.out)
+    print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
+          f"preset {r['preset']}, {r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
+    print(markdown_table(r), end="")
+    for w in r["warnings"]:
+        print(f"warning: {w}")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
@@ -140,11 +159,25 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
+    ev = sub.add_parser("eval", help="evaluate a checkpoint on a BOP split (RE, TE, ADD-10, AUC; paper table, BOP CSV)")
+    ev.add_argument("--model", required=True, help="checkpoint file (from `surftrack train`)")
+    ev.add_argument("--data", required=True, help="BOP dataset folder")
+    ev.add_argument("--split", default="test", help="split folder to evaluate (default: test)")
+    ev.add_argument("--out", default="eval.json", help="results JSON; .md, .bop.csv and .png go next to it "
+                    "(default: eval.json)")
+    ev.add_argument("--preset", default="accurate", choices=["accurate", "fast"], help="estimator preset")
+    ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
+    ev.add_argument("--occlusion-threshold", type=float, default=0.9,
+                    help="instances with visib_fract below it count as occluded (default: 0.9)")
+    ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_cmd_eval)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: user errors become one line on stderr and exit code 2."""
+    from surftrack.data import DatasetError
     from surftrack.instruments import InstrumentError
     from surftrack.render import RenderError
     from surftrack.synth.config import ConfigError
@@ -153,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.config import TrainConfigError
 
     errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
-              FileNotFoundError, PermissionError)
+              DatasetError, FileNotFoundError, PermissionError)
 
     args = build_parser().parse_args(argv)
     try:

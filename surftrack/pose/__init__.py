@@ -4,11 +4,12 @@
 :class:`PartPose` per box. Modules: :mod:`.p3p` (batched P3P / 4-point solver), :mod:`.surface` (cached
 surface keys), :mod:`.correspondence` (correspondence distributions on the downsampled grid),
 :mod:`.hypotheses`, :mod:`.scoring`, :mod:`.refine`, :mod:`.solver` (the per-crop pipeline),
-:mod:`.preset`, :mod:`.estimator` and :mod:`.synthetic` (correspondence fields from rendered object
-coordinates, for tests and benchmarks).
+:mod:`.preset`, :mod:`.estimator`, :mod:`.evaluate` (evaluation on a BOP split: metrics, tables, BOP CSV)
+and :mod:`.synthetic` (correspondence fields from rendered object coordinates, for tests and benchmarks).
 """
 
 from surftrack.pose.correspondence import CorrField, build_field, grid_camera, pool_to_grid
+from surftrack.pose.evaluate import evaluate, markdown_table, summarize, write_eval_outputs
 from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop, square_crop_box
 from surftrack.pose.p3p import p3p, p4p, solve_quartic
 from surftrack.pose.preset import PRESETS, Preset, Presets, get_preset
@@ -16,5 +17,6 @@ from surftrack.pose.solver import Solution, solve_field
 from surftrack.pose.surface import SurfaceBank, clear_bank_cache, part_bank
 
 __all__ = ["CorrField", "PRESETS", "PartPose", "PoseEstimator", "Preset", "Presets", "Solution", "SurfaceBank", "box_from_bop",
-           "build_field", "clear_bank_cache", "get_preset", "grid_camera", "p3p", "p4p", "part_bank", "pool_to_grid",
-           "solve_field", "solve_quartic", "square_crop_box"]
+           "build_field", "clear_bank_cache", "evaluate", "get_preset", "grid_camera", "markdown_table", "p3p", "p4p",
+           "part_bank", "pool_to_grid", "solve_field", "solve_quartic", "square_crop_box", "summarize",
+           "write_eval_outputs"]

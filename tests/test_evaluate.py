@@ -1,0 +1,220 @@
+"""Evaluation on a BOP split: the output files, the metric aggregation against hand computations (with
+injected poses), and the CLI's one-line errors."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from surftrack.data import BopDataset
+from surftrack.eval import auc
+from surftrack.model.checkpoint import save_checkpoint
+from surftrack.model.config import TrainConfig
+from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
+from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop
+from surftrack.pose.evaluate import evaluate, group_stats, markdown_table, pose_errors, summarize, write_eval_outputs
+from surftrack.synth.config import load_synth_config
+from surftrack.synth.generate import generate_dataset
+
+TINY = {
+    "model": {"emb_dim": 12, "decoder_widths": [32, 32, 16, 16, 16], "single_decoder": False, "siren_hidden": 64},
+    "data": {"crop": 64, "scale": 1.2, "jitter": 0.0, "max_rotation_deg": 0, "mask_mode": "amodal",
+             "min_visib_fract": 0.1},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """(dataset root, checkpoint): 3 images 320x256 (split "train") and an untrained tiny model."""
+    root = tmp_path_factory.mktemp("eval_data")
+    cfg = load_synth_config(overrides={
+        "image": {"width": 320, "height": 256}, "two_instruments_prob": 0.0,
+        "tissue": {"images_per_tissue": 3, "spacing_mm": 4.0, "texel_mm": 1.0},
+        "output": {"images_per_scene": 3, "rgb_format": "png"}})
+    generate_dataset(root, cfg, 3, seed=3, workers=1, progress=False)
+    bop = BopDataset(root, "train")
+    card = json.loads((root / "dataset_card.json").read_text())["objects"]
+    parts = [PartInfo.from_part(o, card[str(o)]["instrument"], bop.models[o]) for o in sorted(bop.models)]
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(root / "m.pt", SurfSurg6D(parts, TrainConfig.from_dict(TINY).model),
+                           TrainConfig.from_dict(TINY), 0)
+    return root, ckpt
+
+
+REQUIRED = {"count", "failures", "re_mean", "re_median", "te_mean", "te_median", "add_mean", "add_median",
+            "adds_mean", "add10_bop", "add10_surgripe", "auc_add_0_5mm", "auc_adds_0_5mm"}
+
+
+def test_evaluate_writes_json_table_csv_png(tiny, tmp_path):
+    root, ckpt = tiny
+    r = evaluate(ckpt, root, split="train", preset="fast", max_images=2, device="cpu")
+    bop = BopDataset(root, "train")
+    images = sorted({(i.scene_id, i.im_id) for i in bop.instances})[:2]
+    gt = {(i.scene_id, i.im_id, i.obj_id): i for i in bop.instances if (i.scene_id, i.im_id) in images}
+    assert r["n_images"] == 2 and r["n_instances"] == len(gt) == len(r["instances"])
+    assert r["preset"] == "fast" and r["occlusion"]["threshold"] == 0.9
+    assert set(r["diameters"]) == {"bop", "surgripe"}
+    for p in list(r["parts"].values()) + [r["overall"]]:
+        for g in ("non_occ", "occ", "all"):
+            assert set(p[g]) >= REQUIRED
+        assert p["all"]["count"] == p["non_occ"]["count"] + p["occ"]["count"]
+    assert r["overall"]["all"]["count"] == len(gt)
+    for p in r["parts"].values():
+        assert p["diameter_surgripe_mm"] >= p["diameter_bop_mm"] > 0
+    assert r["timings"]["per_image_s_mean"] > 0 and "forward" in r["timings"]["per_instance_ms_mean"]
+
+    paths = write_eval_outputs(r, tmp_path / "out" / "ev.json")
+    data = json.loads(paths["json"].read_text())
+    assert data["n_instances"] == len(gt) and set(data["overall"]) == {"non_occ", "occ", "all"}
+    md = paths["markdown"].read_text()
+    assert md == markdown_table(r)
+    rows = [l for l in md.splitlines() if l.startswith("| ")]
+    assert "Non-occ RE" in rows[0] and "occ ADD-10" in rows[0] and "Avg Avg ACC 0-5 mm" in rows[0]
+    assert len(rows[0].split("|")) - 2 == 1 + 3 * 4
+    assert any(l.startswith("| **Avg** |") for l in rows)
+    assert all(label in md for label in r["parts"])
+    assert "SurgRIPE diameter" in md and "BOP diameter" in md and "visib_fract < 0.9" in md
+    with paths["bop_csv"].open() as f:
+        recs = list(csv.DictReader(f))
+    assert list(recs[0]) == ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+    assert len(recs) == len(gt)
+    for row in recs:
+        inst = gt[(int(row["scene_id"]), int(row["im_id"]), int(row["obj_id"]))]
+        R = np.array([float(v) for v in row["R"].split(" ")]).reshape(3, 3)
+        t = np.array([float(v) for v in row["t"].split(" ")])
+        assert R.shape == (3, 3) and t.shape == (3,) and float(row["time"]) > 0
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        # t in mm: the CSV's pose reproduces the recorded TE against the ground truth (mm).
+        rec = next(x for x in r["instances"] if (x["scene_id"], x["im_id"], x["obj_id"]) ==
+                   (inst.scene_id, inst.im_id, inst.obj_id))
+        assert np.linalg.norm(t - inst.t) == pytest.approx(rec["te"], abs=1e-4)
+        assert 5.0 < inst.t[2] < 1000.0  # ground-truth depths are tens of mm
+    assert paths["plot"].is_file() and paths["plot"].stat().st_size > 1000
+
+
+class _Oracle(PoseEstimator):
+    """Returns the ground truth shifted by a known translation per object: RE 0, TE = ADD = shift."""
+
+    def __init__(self, ckpt, gt, shift):
+        super().__init__(ckpt, "fast", device="cpu")
+        self.gt, self.shift = gt, shift
+
+    def estimate_batch(self, images, boxes_per_image, Ks):
+        out = []
+        for i, boxes in enumerate(boxes_per_image):
+            poses = []
+            for obj_id, box in boxes:
+                inst = self.gt[(obj_id, tuple(box))]
+                t = inst.t + np.array([0.0, 0.0, self.shift[obj_id]])
+                poses.append(PartPose(obj_id, "p", "i", inst.R.copy(), t, 1.0, 10, True,
+                                      {"forward": 1.0, "total": 1.0}, (0, 0, 1, 1), np.eye(3), i))
+            out.append(poses)
+        return out
+
+
+def test_aggregation_with_injected_poses(tiny):
+    root, ckpt = tiny
+    bop = BopDataset(root, "train")
+    gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
+    assert len(gt) == len(bop.instances)
+    # Shift each part by the mean of its two diameters' 10 %: ADD-10 passes under SurgRIPE's (larger)
+    # diameter and fails under BOP's.
+    d = {o: (m.diameter_max_pairwise, m.diameter_bbox_diagonal) for o, m in bop.models.items()}
+    shift = {o: 0.05 * (a + b) for o, (a, b) in d.items()}
+    r = evaluate(_Oracle(ckpt, gt, shift), root, split="train", occlusion_threshold=0.9)
+    assert r["n_images"] == 3 and r["n_instances"] == len(bop.instances)
+    for label, p in r["parts"].items():
+        o = p["obj_id"]
+        assert p["diameter_bop_mm"] == pytest.approx(d[o][0], rel=1e-9)
+        assert p["diameter_surgripe_mm"] == pytest.approx(d[o][1], rel=1e-9)
+        a = p["all"]
+        n = sum(1 for i in bop.instances if i.obj_id == o)
+        assert a["count"] == n
+        assert a["re_mean"] == pytest.approx(0.0, abs=1e-3)
+        assert a["te_mean"] == pytest.approx(shift[o]) and a["add_mean"] == pytest.approx(shift[o])
+        assert a["add10_surgripe"] == 1.0 and a["add10_bop"] == 0.0
+        # VOCap by hand (n equal errors e; the toolbox credits 1/n on [0, e]): (5 - e) / 5 + e / (5 n), 0 if e > 5.
+        e = shift[o]
+        assert a["auc_add_0_5mm"] == pytest.approx((5 - e) / 5 + e / (5 * n) if e <= 5.0 else 0.0)
+        n_occ = sum(1 for i in bop.instances if i.obj_id == o and i.visib_fract < 0.9)
+        assert p["occ"]["count"] == n_occ and p["non_occ"]["count"] == n - n_occ
+    allv = r["overall"]["all"]
+    shifts = [shift[i.obj_id] for i in bop.instances]
+    assert allv["te_mean"] == pytest.approx(np.mean(shifts)) and allv["te_median"] == pytest.approx(np.median(shifts))
+    assert allv["add10_surgripe"] == 1.0 and allv["add10_bop"] == 0.0
+
+
+def test_summarize_hand_computed():
+    parts = {1: {"label": "shaft", "diameter_bop_mm": 20.0, "diameter_surgripe_mm": 30.0},
+             2: {"label": "jaw", "diameter_bop_mm": 10.0, "diameter_surgripe_mm": 12.0}}
+    rec = [  # obj, visib, re, te, add
+        (1, 1.00, 2.0, 1.0, 1.0), (1, 0.95, 4.0, 3.0, 2.5), (1, 0.50, 10.0, 6.0, 8.0),
+        (2, 0.80, 6.0, 0.5, 1.1), (2, 0.30, 30.0, 9.0, 20.0), (2, 0.92, 1.0, 0.2, 0.4, False),
+    ]
+    records = [{"obj_id": o, "visib_fract": v, "re": a, "te": b, "add": c, "adds": c / 2, "ok": (x[0] if x else True)}
+               for o, v, a, b, c, *x in rec]
+    s = summarize(records, parts, occlusion_threshold=0.9)
+    assert list(s["parts"]) == ["shaft", "jaw"]
+    sh = s["parts"]["shaft"]
+    assert sh["non_occ"]["count"] == 2 and sh["occ"]["count"] == 1
+    assert sh["non_occ"]["re_mean"] == pytest.approx(3.0) and sh["non_occ"]["te_median"] == pytest.approx(2.0)
+    # ADD < 2.0 (BOP 10 %) vs < 3.0 (SurgRIPE): adds 1.0, 2.5, 8.0
+    assert sh["all"]["add10_bop"] == pytest.approx(1 / 3) and sh["all"]["add10_surgripe"] == pytest.approx(2 / 3)
+    # VOCap closed form: mean(max(0, 5 - e) / 5) + e_(m) / (n * 5)
+    e = np.array([1.0, 2.5, 8.0])
+    hand = np.mean(np.maximum(0, 5 - e) / 5) + 2.5 / (3 * 5)
+    assert sh["all"]["auc_add_0_5mm"] == pytest.approx(hand)
+    jaw = s["parts"]["jaw"]
+    assert jaw["occ"]["count"] == 2 and jaw["non_occ"]["count"] == 1 and jaw["all"]["failures"] == 1
+    assert jaw["all"]["add10_bop"] == pytest.approx(1 / 3) and jaw["all"]["add10_surgripe"] == pytest.approx(2 / 3)
+    ov = s["overall"]
+    assert ov["all"]["count"] == 6 and ov["occ"]["count"] == 3 and ov["non_occ"]["count"] == 3
+    assert ov["all"]["re_mean"] == pytest.approx(np.mean([2, 4, 10, 6, 30, 1]))
+    assert ov["occ"]["te_median"] == pytest.approx(6.0)  # occ: 6.0, 0.5, 9.0
+    assert ov["all"]["add10_bop"] == pytest.approx(2 / 6)  # 1.0 < 2 and 0.4 < 1; 1.1 >= 1.0
+    assert ov["all"]["add10_surgripe"] == pytest.approx(4 / 6)  # + 2.5 < 3 and 1.1 < 1.2
+    assert ov["all"]["failures"] == 1
+    empty = group_stats([], {})
+    assert empty["count"] == 0 and empty["re_mean"] is None
+    result = {"parts": s["parts"], "overall": ov, "occlusion": {"definition": "occluded = visib_fract < 0.9"}}
+    md = markdown_table(result)
+    avg = next(l for l in md.splitlines() if l.startswith("| **Avg**"))
+    cells = [c.strip() for c in avg.strip("|").split("|")]
+    assert cells[1] == f"{np.mean([2, 4, 1]):.2f}" and cells[3] == "100.00"  # Non-occ RE, ADD-10 SurgRIPE
+    assert cells[4] == f"{100 * auc([1.0, 2.5, 0.4]):.2f}"
+
+
+def test_pose_errors_known_pose():
+    pts = np.array([[10.0, 0, 0], [0, 10.0, 0], [0, 0, 10.0], [-10.0, 0, 0]])
+    c, s = np.cos(np.radians(10)), np.sin(np.radians(10))
+    Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    t_g = np.array([0.0, 0.0, 100.0])
+    e = pose_errors(Rz, t_g + [3.0, 4.0, 0.0], np.eye(3), t_g, pts)
+    assert e["re"] == pytest.approx(10.0) and e["te"] == pytest.approx(5.0)
+    hand = np.mean([np.linalg.norm(Rz @ p + [3, 4, 0] - p) for p in pts])
+    assert e["add"] == pytest.approx(hand) and e["adds"] <= e["add"]
+    assert pose_errors(np.full((3, 3), np.nan), t_g, np.eye(3), t_g, pts)["add"] == np.inf
+
+
+def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
+    from surftrack.cli import main
+
+    root, ckpt = tiny
+    cases = [
+        (["--model", str(tmp_path / "missing.pt"), "--data", str(root)], "checkpoint not found"),
+        (["--model", str(ckpt), "--data", str(tmp_path / "nodata")], "dataset root is missing"),
+        (["--model", str(ckpt), "--data", str(root), "--split", "test"], "split folder is missing"),
+        (["--model", str(ckpt), "--data", str(root), "--max-images", "0"], "--max-images"),
+    ]
+    for args, msg in cases:
+        assert main(["eval", *args, "--out", str(tmp_path / "e.json"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("surftrack: error:") and msg in err and err.count("\n") == 1, err
+    out = tmp_path / "ok" / "e.json"
+    assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
+                 "--max-images", "1", "--out", str(out), "--device", "cpu", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| **Avg** |" in printed and str(out.with_suffix(".bop.csv")) in printed
+    assert all(p.is_file() for p in (out, out.with_suffix(".md"), out.with_suffix(".png")))
