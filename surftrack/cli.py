@@ -13,6 +13,14 @@ class CLIError(Exception):
     """A user-facing error: printed as one line, exit code 2."""
 
 
+def _seed(text: str) -> int:
+    """argparse type for seeds: a non-negative integer."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"seeds must be >= 0, got {value}")
+    return value
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from surftrack.demo import run_demo
 
@@ -48,9 +56,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     overrides = {}
     if args.instruments:
-        from surftrack.instruments import load_instrument
+        names = [n.strip() for n in args.instruments.split(",") if n.strip()]
+        # YAML paths travel to the worker processes as absolute paths; names and aliases as they are.
+        overrides["instruments"] = [str(Path(n).resolve()) if n.endswith((".yaml", ".yml")) else n for n in names]
 
-        overrides["instruments"] = [load_instrument(n.strip()).name for n in args.instruments.split(",") if n.strip()]
     cfg = load_synth_config(args.config, overrides)
     if args.images <= 0:
         raise CLIError(f"--images must be positive, got {args.images}")
@@ -126,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run the end-to-end demo on built-in data")
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument("--instrument", default="lnd", help="instrument name or alias (default: lnd)")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=_seed, default=0)
     d.set_defaults(func=_cmd_demo)
     i = sub.add_parser("instruments", help="list instruments (parts, sizes) and export BOP models")
     i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all built-in)")
@@ -136,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--out", required=True, help="dataset folder (created; an existing one is resumed)")
     sy.add_argument("--instruments", help="comma-separated names or aliases (default: from the config)")
     sy.add_argument("--images", type=int, default=100, help="total number of images (default: 100)")
-    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--seed", type=_seed, default=0)
     sy.add_argument("--workers", type=int, default=1, help="worker processes, each with its own GL context")
     sy.add_argument("--config", help="synthesis YAML (default: configs/synth/default.yaml)")
     sy.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -147,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--second", help="the crossing instrument (default: cadiere_forceps; 'none' for a single tool)")
     sc.add_argument("--seconds", type=float, default=10.0)
     sc.add_argument("--fps", type=float, default=30.0)
-    sc.add_argument("--seed", type=int, default=0)
+    sc.add_argument("--seed", type=_seed, default=0)
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
     sc.set_defaults(func=_cmd_synth_clip)
     tr = sub.add_parser("train", help="train a SurfSurg6D model on a BOP dataset")
@@ -186,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.config import TrainConfigError
 
     errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
-              DatasetError, FileNotFoundError, PermissionError)
+              DatasetError, OSError)
 
     args = build_parser().parse_args(argv)
     try:

@@ -200,3 +200,24 @@ def test_bad_config_is_reported_with_its_file(tmp_path):
     bad.write_text("posse: {}\n")
     with pytest.raises(ConfigError, match="unknown key"):
         load_synth_config(bad)
+
+
+def test_resume_refuses_another_seed_or_config(dataset):
+    root, cfg, _ = dataset
+    before = _digest(root)
+    with pytest.raises(ConfigError, match="another seed or configuration"):
+        generate_dataset(root, cfg, N + 2, seed=6, workers=1, progress=False)
+    other = load_synth_config(overrides={**SMALL, "two_instruments_prob": 0.1})
+    with pytest.raises(ConfigError, match="another seed or configuration"):
+        generate_dataset(root, other, N + 2, seed=5, workers=1, progress=False)
+    assert _digest(root) == before
+
+
+def test_instrument_aliases_and_duplicates(tmp_path):
+    cfg = load_synth_config(overrides={**SMALL, "instruments": ["lnd", "mcs"]})
+    from surftrack.synth.generate import load_instruments
+
+    assert [i.name for i in load_instruments(cfg)] == ["large_needle_driver", "scissors"]
+    dup = load_synth_config(overrides={**SMALL, "instruments": ["lnd", "large_needle_driver"]})
+    with pytest.raises(ConfigError, match="twice"):
+        load_instruments(dup)

@@ -88,7 +88,7 @@ def _load_mesh(spec: dict, base: Path, where: str) -> tuple[trimesh.Trimesh, dic
         params = {k: v for k, v in spec.items() if k != "builder"}
         try:
             return build(spec["builder"], **params)
-        except ValueError as e:
+        except (ValueError, TypeError) as e:
             raise InstrumentError(f"{where}: {e}") from None
     raise InstrumentError(f"{where}: a mesh needs either 'builder' or 'file' (+ 'units')")
 
@@ -102,6 +102,8 @@ def load_instrument_file(path: str | Path) -> Instrument:
         raise InstrumentError(f"{path}: cannot read instrument description: {e}") from None
     if not isinstance(doc, dict) or "name" not in doc or not doc.get("parts"):
         raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
+    if not isinstance(doc.get("aliases", []), list):
+        raise InstrumentError(f"{path}: 'aliases' must be a list, e.g. [lnd]")
     limits_deg = doc.get("joint_limits_deg", {})
     try:
         limits = JointLimits({k: (float(np.radians(lo)), float(np.radians(hi))) for k, (lo, hi) in limits_deg.items()})

@@ -44,14 +44,17 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
+    try:  # weights_only: a checkpoint holds tensors and plain values, never code
+        blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for corrupt files
         raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}: {e})") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a surftrack SurfSurg6D checkpoint")
-    cfg = TrainConfig.from_dict(blob["config"], str(path))
-    model = SurfSurg6D([PartInfo.from_dict(p) for p in blob["parts"]], cfg.model)
-    state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
-    model.load_state_dict(state)
+    try:
+        cfg = TrainConfig.from_dict(blob["config"], str(path))
+        model = SurfSurg6D([PartInfo.from_dict(p) for p in blob["parts"]], cfg.model)
+        state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
+        model.load_state_dict(state)
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: inconsistent checkpoint ({e.__class__.__name__}: {e})") from None
     return model.to(device).eval(), cfg, blob

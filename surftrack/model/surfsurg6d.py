@@ -47,13 +47,14 @@ class PartInfo:
     def to_dict(self) -> dict:
         return {"obj_id": self.obj_id, "instrument": self.instrument, "name": self.name,
                 "mesh_sha256": self.mesh_sha256, "center": self.center.tolist(), "radius": self.radius,
-                "vertices": self.vertices.astype(np.float32), "faces": self.faces.astype(np.int32),
+                "vertices": torch.from_numpy(self.vertices.astype(np.float32)),
+                "faces": torch.from_numpy(self.faces.astype(np.int32)),
                 "keypoints": self.keypoints}
 
     @classmethod
     def from_dict(cls, d: dict) -> PartInfo:
         return cls(int(d["obj_id"]), d["instrument"], d["name"], d["mesh_sha256"], np.asarray(d["center"]),
-                   float(d["radius"]), np.asarray(d["vertices"], np.float64), np.asarray(d["faces"], np.int64),
+                   float(d["radius"]), np.asarray(d["vertices"]).astype(np.float64), np.asarray(d["faces"]).astype(np.int64),
                    d.get("keypoints", {}))
 
 

@@ -20,8 +20,8 @@ import torch.nn.functional as F
 
 from surftrack.geometry import rotation_angle_deg
 from surftrack.model import losses
-from surftrack.model.checkpoint import load_checkpoint, save_checkpoint
-from surftrack.model.config import TrainConfig
+from surftrack.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from surftrack.model.config import TrainConfig, TrainConfigError
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D, surface_bank
 
 BANK_SIZE = 20000
@@ -175,7 +175,7 @@ def plot_curves(metrics_path: Path, png_path: Path) -> None:
 
 
 def _split_instances(bop, val_images: int, seed: int) -> tuple[list[int], list[int]]:
-    """Hold out whole images (every instance of them): about ``val_images`` images, chosen by a hash."""
+    """Hold out whole images (every instance of them): about ``val_images`` images, drawn with ``seed``."""
     images = sorted({(r.scene_id, r.im_id) for r in bop.instances})
     rng = np.random.default_rng(seed)
     n_val = min(val_images, max(1, len(images) // 10)) if len(images) > 1 else 0
@@ -239,7 +239,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         real_bop = BopDataset(cfg.data.real_data, min_visib_fract=cfg.data.min_visib_fract)
         if {o: real_bop.models[o].mesh_hash for o in real_bop.models} != {o: bop.models[o].mesh_hash for o in obj_ids
                                                                        if o in real_bop.models} or not real_bop.models:
-            raise ValueError(f"{cfg.data.real_data}: its models differ from those of {data_dir}")
+            raise TrainConfigError(f"{cfg.data.real_data}: its models differ from those of {data_dir}")
         real_ds = CropDataset(real_bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
                               augment=cfg.data.augment, seed=cfg.run.seed + 1, **common)
         epoch_datasets.append(real_ds)
@@ -253,7 +253,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     if resume and out.is_file():
         model, _, blob = load_checkpoint(out, dev)
         if [p.mesh_sha256 for p in model.parts] != [p.mesh_sha256 for p in parts]:
-            raise ValueError(f"{out}: checkpoint parts do not match the dataset's models; cannot resume")
+            raise CheckpointError(f"{out}: checkpoint parts do not match the dataset's models; cannot resume")
         trainer = Trainer(model, cfg, dev)
         if blob.get("optimizer"):
             trainer.optimizer.load_state_dict(blob["optimizer"])

@@ -418,6 +418,8 @@ class Renderer:
                     *self._single_fbos.values()):
             obj.release()
         self.instances.clear()
+        self.prog.release()
+        self.prog_amodal.release()
 
 
 __all__ = ["MODALITIES", "RenderError", "RenderResult", "Renderer"]

@@ -49,9 +49,9 @@ class TissueCollision:
 
 class PartCollision:
     """Mesh-mesh collisions (python-fcl) among the parts of up to ``slots`` posed instruments, shaft
-    extensions included. One collision manager per (slot, instrument): parts within an instrument are
-    tested with each other (except an extension with its own shaft, which overlap by design), and every
-    pair of instruments across managers."""
+    extensions included. One collision manager per (slot, instrument): the parts of an instrument are
+    tested with each other (its shaft extension is not: it overlaps its own shaft by design and sits
+    behind it, out of reach of the other parts), and every pair of instruments across managers."""
 
     def __init__(self, instruments: list[Instrument], slots: int = 2):
         self.managers: dict[tuple[int, str], tuple[trimesh.collision.CollisionManager, list[tuple[str, str]]]] = {}

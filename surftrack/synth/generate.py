@@ -18,10 +18,10 @@ import numpy as np
 from surftrack import __version__
 from surftrack.geometry import PinholeCamera
 from surftrack.instruments import Instrument, assign_obj_ids, export_bop_models, load_instrument
-from surftrack.render import Renderer, add_instrument, worker_context
+from surftrack.render import Renderer, add_instrument, gl_context, worker_context
 from surftrack.synth import bop_writer
 from surftrack.synth.checks import PartCollision, TissueCollision, in_view
-from surftrack.synth.config import SynthConfig
+from surftrack.synth.config import ConfigError, SynthConfig
 from surftrack.synth.effects import CameraEffects, apply_effects
 from surftrack.synth.sampling import (
     InstrumentSample,
@@ -52,7 +52,8 @@ class SceneGenerator:
 
     def __init__(self, cfg: SynthConfig, seed: int, out_dir: Path):
         self.cfg, self.seed, self.out = cfg, seed, Path(out_dir)
-        self.instruments = {n: load_instrument(n) for n in cfg.instruments}
+        self.instruments = {i.name: i for i in load_instruments(cfg)}
+        self.names = list(self.instruments)
         self.obj_ids = {(inst.name, p): oid for oid, (inst, p) in
                         assign_obj_ids(list(self.instruments.values())).items()}
         self.renderer = Renderer(cfg.image.width, cfg.image.height)
@@ -96,7 +97,7 @@ class SceneGenerator:
         rejections: Counter = Counter()
         # What is in the image is decided once, so that rejections cannot bias the mix of instruments.
         count = 2 if rng.random() < cfg.two_instruments_prob else 1
-        names = [cfg.instruments[int(rng.integers(len(cfg.instruments)))] for _ in range(count)]
+        names = [self.names[int(rng.integers(len(self.names)))] for _ in range(count)]
         for attempt in range(1, cfg.rejection.max_attempts + 1):
             camera = sample_camera(cfg.image, cfg.camera, rng)
             tissue_pose = jitter_pose(base_pose, rng, cfg.tissue.jitter_mm, cfg.tissue.jitter_deg)
@@ -185,6 +186,26 @@ class SceneGenerator:
                                cfg.output.depth_scale)
 
 
+def load_instruments(cfg: SynthConfig) -> list[Instrument]:
+    """The configured instruments (names, aliases or YAML paths), each once."""
+    insts = [load_instrument(n) for n in cfg.instruments]
+    names = [i.name for i in insts]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"instruments {list(cfg.instruments)} name the same instrument twice ({names})")
+    return insts
+
+
+def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
+    """Refuse to add images made with another seed or configuration to an existing dataset."""
+    card = out / "dataset_card.json"
+    if not card.is_file():
+        return
+    old = json.loads(card.read_text())
+    if old.get("seed") != seed or old.get("config") != json.loads(json.dumps(cfg.to_dict())):
+        raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
+                          f"(see {card}); resume with the same ones, or write to a new folder")
+
+
 # ---------------------------------------------------------------------- worker pool plumbing
 _GEN: SceneGenerator | None = None
 
@@ -240,7 +261,9 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    instruments = [load_instrument(n) for n in cfg.instruments]
+    instruments = load_instruments(cfg)
+    _check_resume(out, cfg, seed)
+    gl_context()  # fail here, with a clear error, rather than in workers that a pool would respawn forever
     export_bop_models(instruments, out / "models")
     tasks = plan_tasks(cfg, out, n_images)
     todo = sum(len(ids) for _, ids in tasks)
@@ -261,7 +284,7 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
                     bar.update(len(res))
     finally:
         bar.close()
-        scenes = sorted({s for s, _ in plan_tasks(cfg, out, 0)} | {st.scene_id for st in stats}
+        scenes = sorted({st.scene_id for st in stats}
                         | set(range((n_images + cfg.output.images_per_scene - 1) // cfg.output.images_per_scene)))
         for s in scenes:
             if bop_writer.scene_dir(out, cfg.output.split, s).is_dir():

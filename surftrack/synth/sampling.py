@@ -56,7 +56,8 @@ def sample_tissue_pose(cfg: TissueCfg, rng: np.random.Generator) -> np.ndarray:
 
 
 def jitter_pose(T: np.ndarray, rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
-    """``T`` moved by up to ``mm`` and turned by up to ``deg`` about its own origin (the paper's scene jitter)."""
+    """``T`` moved and turned about its own origin by Gaussian amounts of RMS ``mm`` and ``deg`` (the
+    paper's scene jitter)."""
     dR = so3_exp(rng.normal(size=3) * np.radians(deg) / np.sqrt(3))
     return se3(dR @ T[:3, :3], T[:3, 3] + rng.normal(size=3) * mm / np.sqrt(3))
 
@@ -142,7 +143,9 @@ def sample_instrument(instrument: Instrument, cfg: PoseCfg, rng: np.random.Gener
         if abs(d - d_wanted) < 1.0:
             break
         tip = under + (tip - under) * (d_wanted / max(d, 1e-6))
-    if tip[2] < cfg.min_depth_mm or not cfg.tip_to_tissue_mm[0] <= d <= cfg.tip_to_tissue_mm[1]:
+    else:
+        return None  # not converged: d would describe an earlier tip
+    if not cfg.tip_to_tissue_mm[0] <= d <= cfg.tip_to_tissue_mm[1]:
         return None
     pitch_point = tip - _tip_distance(instrument) * shaft
     trocar = pitch_point - rng.uniform(60.0, 140.0) * shaft
