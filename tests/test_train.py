@@ -81,6 +81,9 @@ def test_checkpoint_round_trip_and_resume(tiny_data, tmp_path):
     # Resume continues from the saved step to the new target.
     s = train(cfg.replace(optim={"steps": 6}), tiny_data, out, resume=True, progress=False)
     assert s["steps"] == 6 and load_checkpoint(out)[2]["step"] == 6
+    steps = [json.loads(line)["step"] for line in (tmp_path / "m.metrics.jsonl").read_text().splitlines()
+             if json.loads(line)["kind"] == "train"]
+    assert steps == sorted(set(steps)) and steps[-1] == 6  # no step logged twice across the resume
 
 
 def test_bad_checkpoint_and_config_errors(tmp_path):

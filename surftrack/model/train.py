@@ -123,7 +123,8 @@ def quick_pose_eval(model: SurfSurg6D, batch: dict, bank: torch.Tensor, device: 
         ys, xs = torch.nonzero(m, as_tuple=True)
         res = {"re": 180.0, "te": 1e3, "add": 1e3, "part": p}
         if len(xs) >= 6:
-            sel = torch.randperm(len(xs), device=device)[:max_queries]
+            gen = torch.Generator(device=device).manual_seed(b)  # leaves the training random stream alone
+            sel = torch.randperm(len(xs), device=device, generator=gen)[:max_queries]
             ys, xs = ys[sel], xs[sel]
             qv = query[b][:, ys, xs].T                                   # (Q, E)
             kc = bank[p, :n_keys]
@@ -236,6 +237,9 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     train_ds = _subset(syn_ds, train_idx)
     sampler = None
     if cfg.data.real_data:
+        if world > 1:
+            raise TrainConfigError("mixing data.real_data into batches is not supported with several processes yet "
+                                   "(the mixed sampler is not split by rank)")
         real_bop = BopDataset(cfg.data.real_data, min_visib_fract=cfg.data.min_visib_fract)
         if {o: real_bop.models[o].mesh_hash for o in real_bop.models} != {o: bop.models[o].mesh_hash for o in obj_ids
                                                                        if o in real_bop.models} or not real_bop.models:
@@ -249,7 +253,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     val_ds = _subset(CropDataset(bop, jitter=0.0, augment=None, seed=cfg.run.seed, **common), val_idx) \
         if val_idx else None
 
-    start = 0
+    start, start_epoch = 0, 0
     if resume and out.is_file():
         model, _, blob = load_checkpoint(out, dev)
         if [p.mesh_sha256 for p in model.parts] != [p.mesh_sha256 for p in parts]:
@@ -258,8 +262,16 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         if blob.get("optimizer"):
             trainer.optimizer.load_state_dict(blob["optimizer"])
         start = int(blob["step"])
-        if "torch_rng" in blob.get("extra", {}):
-            torch.set_rng_state(blob["extra"]["torch_rng"])
+        extra = blob.get("extra", {})
+        if "torch_rng" in extra:
+            torch.set_rng_state(extra["torch_rng"])
+        if extra.get("scaler"):
+            trainer.scaler.load_state_dict(extra["scaler"])
+        start_epoch = int(extra.get("epoch", 0))
+        if rank == 0 and metrics_path.exists():  # rows logged after the checkpoint would repeat steps
+            rows = [line for line in metrics_path.read_text().splitlines()
+                    if line.strip() and json.loads(line)["step"] <= start]
+            metrics_path.write_text("".join(r + "\n" for r in rows))
     else:
         model = SurfSurg6D(parts, cfg.model).to(dev)
         if dev.type == "cuda":
@@ -282,11 +294,12 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
 
     def save(step: int) -> None:
         if rank == 0:
-            save_checkpoint(out, model, cfg, step, trainer.optimizer, extra={"torch_rng": torch.get_rng_state()})
+            save_checkpoint(out, model, cfg, step, trainer.optimizer, extra={
+                "torch_rng": torch.get_rng_state(), "epoch": epoch, "scaler": trainer.scaler.state_dict()})
 
     step, t0, seen = start, time.perf_counter(), 0
     bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", disable=not progress or rank > 0)
-    epoch = 0
+    epoch = start_epoch
     last_val: dict = {}
     try:
         while step < total_steps:
