@@ -219,3 +219,31 @@ def test_missing_egl_gives_a_clear_error(monkeypatch):
     monkeypatch.setattr(moderngl, "create_context", fail)
     with pytest.raises(RenderError, match="libegl1"):
         c.gl_context()
+
+
+def test_padded_amodal_masks_count_truncated_silhouettes(scene):
+    r, cam = scene["r"], scene["cam"]
+    shaft = scene["handles"].parts["shaft"]
+    plain = r.render(cam, scene["poses"], modalities={"amodal"})
+    padded = r.render(cam, scene["poses"], modalities={"amodal"}, amodal_pad=64)
+    assert padded.amodal[shaft].shape == (H + 128, W + 128)
+    for iid in plain.amodal:
+        # The image part of a padded mask is exactly the unpadded mask: same rays through the same pixels.
+        assert np.array_equal(padded.amodal_in_image(iid), plain.amodal[iid])
+        assert padded.amodal[iid].sum() >= plain.amodal[iid].sum()
+    # The shaft runs out of the image: padding finds more of its silhouette.
+    assert padded.amodal[shaft].sum() > plain.amodal[shaft].sum()
+
+
+def test_removing_an_instance_frees_unshared_geometry():
+    cam = PinholeCamera.from_fov(48, 40, 60.0)
+    r = Renderer(48, 40)
+    a = r.add_mesh(trimesh.creation.icosphere(radius=8))
+    b = r.add_instance(a)
+    r.remove(a)  # b still uses the geometry
+    depth = r.render(cam, {b: se3(np.eye(3), [0, 0, 50.0])}, modalities={"depth"}).depth
+    assert (depth > 0).sum() > 50
+    r.remove(b)
+    with pytest.raises(ValueError):
+        r.render(cam, {b: se3(np.eye(3), [0, 0, 50.0])})
+    r.release()
