@@ -1,0 +1,227 @@
+import numpy as np
+import pytest
+
+from surftrack.geometry import rotation_about, rotation_angle_deg, so3_exp, so3_log
+from surftrack.track import CHI2_6DOF_999, KalmanConfig, PoseKalman
+
+
+def _trajectory(n, rng, axis=(0.3, -0.5, 0.8), w=1.5, angle0=0.3, mean_dt=1 / 30):
+    """Constant-velocity trajectory with variable frame times: rotation about a fixed world axis."""
+    times = np.concatenate([[0.0], np.cumsum(rng.uniform(0.5, 1.5, n - 1) * mean_dt)])
+    R0 = so3_exp(np.array([0.2, -0.4, 0.1]))
+    t0 = np.array([10.0, -20.0, 120.0])
+    v = np.array([30.0, -15.0, 8.0])
+    Rs = np.stack([rotation_about(axis, angle0 + w * s) @ R0 for s in times])
+    ts = t0 + times[:, None] * v
+    return times, Rs, ts
+
+
+def _noisy(Rs, ts, rng, pos_std=3.0, rot_std_deg=3.0):
+    Rm = np.stack([R @ so3_exp(rng.normal(scale=np.radians(rot_std_deg), size=3)) for R in Rs])
+    tm = ts + rng.normal(scale=pos_std, size=ts.shape)
+    return Rm, tm
+
+
+def _track(times, Rm, tm, config=None):
+    kf = PoseKalman(config)
+    Re, te, accepted = [], [], []
+    for i, s in enumerate(times):
+        if i == 0:
+            kf.init(Rm[0], tm[0], s)
+            accepted.append(True)
+        else:
+            kf.predict(s)
+            accepted.append(kf.update(Rm[i], tm[i]))
+        R, t = kf.pose
+        Re.append(R)
+        te.append(t)
+    return kf, np.stack(Re), np.stack(te), np.array(accepted)
+
+
+def _rms(Ra, ta, Rb, tb):
+    pos = np.sqrt(np.mean(np.sum((ta - tb) ** 2, axis=1)))
+    rot = np.sqrt(np.mean(rotation_angle_deg(Ra, Rb) ** 2))
+    return pos, rot
+
+
+def test_state_has_12_entries_no_quaternion():
+    kf = PoseKalman()
+    kf.init(np.eye(3), np.zeros(3), 0.0)
+    assert kf.kf.x.size == 12 and kf.x.shape == (12,)
+    assert kf.kf.P.shape == (12, 12)
+    assert kf.kf.dim_z == 6
+
+
+@pytest.mark.parametrize("config, factor", [
+    (None, 0.8),  # defaults (sized for real, accelerating instrument motion)
+    (KalmanConfig(accel_std_mm_s2=30.0, ang_accel_std_rad_s2=0.5), 0.55),  # tuned to this CV trajectory
+])
+def test_tracking_beats_raw_measurements(config, factor):
+    rng = np.random.default_rng(0)
+    times, Rs, ts = _trajectory(300, rng)
+    Rm, tm = _noisy(Rs, ts, rng)
+    kf, Re, te, acc = _track(times, Rm, tm, config)
+    skip = 30  # let the velocity estimate converge
+    raw_pos, raw_rot = _rms(Rm[skip:], tm[skip:], Rs[skip:], ts[skip:])
+    kf_pos, kf_rot = _rms(Re[skip:], te[skip:], Rs[skip:], ts[skip:])
+    print(f"RMS position raw {raw_pos:.2f} mm -> KF {kf_pos:.2f} mm; "
+          f"rotation raw {raw_rot:.2f} deg -> KF {kf_rot:.2f} deg")
+    assert acc.mean() > 0.98
+    assert kf_pos < factor * raw_pos
+    assert kf_rot < factor * raw_rot
+    assert np.all(kf.position_std_mm < 3.0) and np.all(kf.rotation_std_deg < 3.0)
+    # the estimated velocities agree with the truth (body-frame omega = R^T axis * w) within 4 sigma
+    v, omega = kf.velocity
+    sd = np.sqrt(np.diag(kf.covariance))
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    assert np.all(np.abs(v - [30.0, -15.0, 8.0]) < 4 * sd[3:6])
+    assert np.all(np.abs(omega - Rs[-1].T @ axis * 1.5) < 4 * sd[9:12])
+
+
+def test_predict_only_extrapolates_constant_velocity_exactly():
+    rng = np.random.default_rng(1)
+    times, Rs, ts = _trajectory(40, rng, w=2.0)
+    kf = PoseKalman()
+    kf.init(Rs[0], ts[0], times[0])
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    x = kf.kf.x.copy()
+    x[3:6, 0] = [30.0, -15.0, 8.0]
+    x[9:12, 0] = Rs[0].T @ axis * 2.0  # body-frame angular velocity of a fixed world-axis rotation
+    kf.kf.x = x
+    R_pred, t_pred = kf.predicted_pose(times[-1])
+    assert np.allclose(t_pred, ts[-1], atol=1e-9)
+    assert np.allclose(R_pred, Rs[-1], atol=1e-10)
+    P_before = kf.covariance
+    for s, R, t in zip(times[1:], Rs[1:], ts[1:]):
+        kf.predict(s)
+        Re, te = kf.pose
+        assert np.allclose(te, t, atol=1e-9)
+        assert np.allclose(Re, R, atol=1e-10)
+    assert np.all(kf.x[6:9] == 0.0)
+    # uncertainty grows without measurements
+    assert np.all(np.diag(kf.covariance) >= np.diag(P_before) - 1e-12)
+    assert np.all(kf.position_std_mm > np.sqrt(np.diag(P_before)[:3]))
+
+
+def test_predicted_pose_does_not_mutate():
+    kf = PoseKalman()
+    kf.init(np.eye(3), np.ones(3), 1.0)
+    x, P, R = kf.x, kf.covariance, kf.R_ref.copy()
+    kf.predicted_pose(2.0)
+    assert np.array_equal(kf.x, x) and np.array_equal(kf.covariance, P) and np.array_equal(kf.R_ref, R)
+    assert kf.time == 1.0
+
+
+@pytest.mark.parametrize("dt", [0.0, -0.01])
+def test_nonpositive_dt_raises(dt):
+    kf = PoseKalman()
+    kf.init(np.eye(3), np.zeros(3), 5.0)
+    with pytest.raises(ValueError):
+        kf.predict(5.0 + dt)
+
+
+def test_outlier_is_gated_and_normal_measurements_pass():
+    rng = np.random.default_rng(2)
+    times, Rs, ts = _trajectory(60, rng)
+    Rm, tm = _noisy(Rs, ts, rng)
+    kf, *_ = _track(times[:40], Rm[:40], tm[:40])
+    assert kf.rejections_in_a_row == 0
+    outliers = [
+        (Rm[40], tm[40] + np.array([50.0, 0.0, 0.0])),           # 50 mm off
+        (Rm[40] @ rotation_about([0, 0, 1], np.pi / 2), tm[40]),  # 90 deg off
+        (Rm[40] @ rotation_about([1, 1, 0], np.pi / 2), tm[40] - 50.0),
+    ]
+    for k, (Ro, to) in enumerate(outliers, start=1):
+        kf.predict(times[39 + k])
+        x, P, R_ref = kf.x, kf.covariance, kf.R_ref.copy()
+        assert kf.gate(Ro, to) > CHI2_6DOF_999
+        assert kf.update(Ro, to) is False
+        assert np.array_equal(kf.x, x) and np.array_equal(kf.covariance, P)
+        assert np.array_equal(kf.R_ref, R_ref)
+        assert kf.rejections_in_a_row == k
+    assert not kf.lost
+    # a normal measurement passes and resets the counter
+    kf.predict(times[43])
+    assert kf.gate(Rm[43], tm[43]) < CHI2_6DOF_999
+    assert kf.update(Rm[43], tm[43]) is True
+    assert kf.rejections_in_a_row == 0
+    # gate=False forces the update
+    kf.predict(times[44])
+    assert kf.update(Rm[44], tm[44] + 50.0, gate=False) is True
+
+
+def test_lost_after_max_rejections_and_reinit():
+    kf = PoseKalman(KalmanConfig(max_rejections=3))
+    kf.init(np.eye(3), np.zeros(3), 0.0)
+    for i in range(3):
+        kf.predict(0.033 * (i + 1))
+        assert kf.update(np.eye(3), np.array([100.0, 0, 0])) is False
+    assert kf.lost
+    kf.init(np.eye(3), np.array([100.0, 0, 0]), 0.2)
+    assert not kf.lost and kf.rejections_in_a_row == 0
+
+
+def test_init_is_never_gated():
+    kf = PoseKalman()
+    kf.init(np.eye(3), np.zeros(3), 0.0)
+    R_far = rotation_about([0, 1, 0], 3.0)
+    t_far = np.array([500.0, -400.0, 900.0])
+    assert kf.gate(R_far, t_far) > CHI2_6DOF_999
+    kf.init(R_far, t_far, 0.1)  # re-initialisation from the estimator is accepted unconditionally
+    R, t = kf.pose
+    assert np.allclose(t, t_far) and rotation_angle_deg(R, R_far) < 1e-9
+    # step() initialises on its first call without gating
+    kf2 = PoseKalman()
+    assert kf2.step(0.0, R_far, t_far) is True
+    with pytest.raises(RuntimeError):
+        PoseKalman().predict(1.0)
+
+
+def test_rotation_wraparound_through_pi():
+    rng = np.random.default_rng(3)
+    axis = np.array([0.0, 0.6, 0.8])
+    # absolute rotation (R0 = I, angle from 150 deg to ~250 deg): so3_log flips sign at 180 deg
+    times = np.concatenate([[0.0], np.cumsum(rng.uniform(0.02, 0.045, 119))])
+    w = np.radians(100) / times[-1]
+    Rs = np.stack([rotation_about(axis, np.radians(150) + w * s) for s in times])
+    ts = np.tile([0.0, 0.0, 100.0], (len(times), 1))
+    rv = so3_log(Rs)
+    assert np.any(rv @ axis > 0) and np.any(rv @ axis < 0)  # the rotation vector really wraps
+    Rm, tm = _noisy(Rs, ts, rng, rot_std_deg=2.0)
+    kf, Re, te, acc = _track(times, Rm, tm)
+    assert acc.all()
+    err = rotation_angle_deg(Re, Rs)
+    raw = rotation_angle_deg(Rm, Rs)
+    assert err[10:].max() < 8.0  # no jump when the rotation vector flips at 180 deg
+    assert np.sqrt(np.mean(err[20:] ** 2)) < np.sqrt(np.mean(raw[20:] ** 2))
+
+
+def test_gate_matches_hand_computation():
+    rng = np.random.default_rng(4)
+    times, Rs, ts = _trajectory(20, rng)
+    Rm, tm = _noisy(Rs, ts, rng)
+    kf, *_ = _track(times[:15], Rm[:15], tm[:15])
+    kf.predict(times[15])
+    meas_cov = np.diag([4.0, 9.0, 16.0, 1e-3, 2e-3, 3e-3])
+    meas_cov[0, 1] = meas_cov[1, 0] = 1.0
+    R_meas, t_meas = Rm[15] @ so3_exp([0.05, -0.02, 0.03]), tm[15] + [2.0, -1.0, 3.0]
+    d2 = kf.gate(R_meas, t_meas, meas_cov)
+    P = kf.covariance
+    H = np.zeros((6, 12))
+    H[0:3, 0:3] = np.eye(3)
+    H[3:6, 6:9] = np.eye(3)
+    y = np.concatenate([t_meas - kf.pose[1], so3_log(kf.pose[0].T @ R_meas)])
+    S = H @ P @ H.T + meas_cov
+    assert np.isclose(d2, y @ np.linalg.inv(S) @ y, rtol=1e-10)
+    # gate does not mutate; update's d2 (before the update) equals gate's
+    x = kf.x
+    kf.update(R_meas, t_meas, meas_cov, gate=False)
+    assert np.isclose(kf.last_d2, d2, rtol=1e-12)
+    assert not np.array_equal(kf.x, x)
+
+
+def test_default_config():
+    c = KalmanConfig()
+    assert c.gate_chi2 == pytest.approx(22.46)
+    assert c.meas_cov().shape == (6, 6)
+    assert np.isclose(c.meas_cov()[3, 3], np.radians(c.meas_rot_std_deg) ** 2)
