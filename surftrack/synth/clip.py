@@ -430,14 +430,15 @@ class _Planner:
         return None
 
     # ------------------------------------------------------------------ guards and checks
-    def _guard_tissue(self, track: _Track) -> bool:
-        check = self.tissue_checks[track.instrument.name]
+    def _retract_until_clear(self, track: _Track, collides, step_mm: float) -> bool:
+        """Retract ``track`` along its shaft, smoothly over time, wherever ``collides(i, retract_mm)`` holds;
+        False when a frame cannot be cleared before the tool would leave its trocar."""
         for _ in range(3):
             need = np.zeros(self.n)
             for i in range(self.n):
                 r, top = 0.0, track.depth[i] - track.retract[i] - MIN_INSERTION_MM
-                while check.collides(track.poses(i, r), self.tissue, self.tissue_pose, TISSUE_CLEARANCE_MM):
-                    r += 1.0
+                while collides(i, r):
+                    r += step_mm
                     if r > top:
                         return False
                 need[i] = r
@@ -446,22 +447,18 @@ class _Planner:
             track.retract = track.retract + _smoothed_need(need, self.sigma)
         return False
 
+    def _guard_tissue(self, track: _Track) -> bool:
+        check = self.tissue_checks[track.instrument.name]
+        return self._retract_until_clear(
+            track, lambda i, r: check.collides(track.poses(i, r), self.tissue, self.tissue_pose, TISSUE_CLEARANCE_MM),
+            1.0)
+
     def _guard_parts(self, main: _Track, second: _Track) -> bool:
         """Retract the second tool (along its shaft) wherever the two tools would touch."""
-        for _ in range(3):
-            need = np.zeros(self.n)
-            for i in range(self.n):
-                r, top = 0.0, second.depth[i] - second.retract[i] - MIN_INSERTION_MM
-                pm = main.poses(i)
-                while self.tool_check.collisions_of([(self.main, pm), (self.second, second.poses(i, r))]):
-                    r += 2.0
-                    if r > top:
-                        return False
-                need[i] = r
-            if not need.any():
-                return True
-            second.retract = second.retract + _smoothed_need(need, self.sigma)
-        return False
+        return self._retract_until_clear(
+            second, lambda i, r: bool(self.tool_check.collisions_of([(self.main, main.poses(i)),
+                                                                       (self.second, second.poses(i, r))])),
+            2.0)
 
     def _left_view(self, track: _Track) -> int:
         test = self.view_tests[track.instrument.name]
