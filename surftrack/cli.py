@@ -99,8 +99,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = load_train_config(args.config)
     if args.steps is not None and args.steps <= 0:
         raise CLIError(f"--steps must be positive, got {args.steps}")
+    if args.init and args.resume:
+        raise CLIError("--init and --resume exclude each other: --resume continues --out, --init starts afresh")
     s = train(cfg, args.data, args.out, steps=args.steps, resume=args.resume, device=args.device,
-              progress=not args.quiet)
+              progress=not args.quiet, init=args.init)
     val = s["val"]
     extra = (f"; held-out: RE median {val['re_median']:.1f} deg, TE median {val['te_median']:.1f} mm, "
              f"ADD-10 {100 * val['add10']:.1f} %") if "re_median" in val else ""
@@ -165,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", default="model.pt", help="checkpoint file (default: model.pt)")
     tr.add_argument("--steps", type=int, help="override the number of training steps")
     tr.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    tr.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fresh optimiser, step 0)")
     tr.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)

@@ -99,3 +99,36 @@ def test_bad_checkpoint_and_config_errors(tmp_path):
     cfg.write_text("optim: {stepz: 3}\n")
     with pytest.raises(TrainConfigError, match="stepz"):
         load_train_config(cfg)
+
+
+def test_lr_schedule_warmup_and_cosine():
+    from surftrack.model.config import OptimCfg, lr_factor
+
+    const = OptimCfg(warmup=0, schedule="constant")
+    assert lr_factor(const, 0, 100) == 1.0 and lr_factor(const, 99, 100) == 1.0
+    cos = OptimCfg(warmup=10, schedule="cosine")
+    assert lr_factor(cos, 0, 110) == pytest.approx(0.1) and lr_factor(cos, 9, 110) == pytest.approx(1.0)
+    assert lr_factor(cos, 10, 110) == pytest.approx(1.0)
+    assert lr_factor(cos, 60, 110) == pytest.approx(0.55)
+    assert lr_factor(cos, 110, 110) == pytest.approx(0.1)
+    vals = [lr_factor(cos, s, 110) for s in range(10, 111)]
+    assert all(a >= b for a, b in zip(vals, vals[1:]))
+
+
+def test_init_from_checkpoint(tiny_data, tmp_path):
+    from surftrack.model import CheckpointError
+    from surftrack.model.config import TrainConfig
+
+    cfg = TrainConfig.from_dict(TINY).replace(optim={"steps": 2, "lr_net": 0.0, "lr_field": 0.0},
+                                              run={"val_every": 100, "ckpt_every": 100})
+    first = tmp_path / "a.pt"
+    train(cfg, tiny_data, first, progress=False)
+    # With zero learning rates, a run started from `first` keeps its weights (BN statistics aside).
+    second = tmp_path / "b.pt"
+    train(cfg, tiny_data, second, progress=False, init=first)
+    a, b = load_checkpoint(first)[0].state_dict(), load_checkpoint(second)[0].state_dict()
+    conv = [k for k in a if k.endswith("weight") and "bn" not in k]
+    assert conv and all(torch.equal(a[k], b[k]) for k in conv)
+    other = cfg.replace(model={"decoder_widths": [16, 16, 16, 16, 16]})
+    with pytest.raises(CheckpointError, match="architecture"):
+        train(other, tiny_data, tmp_path / "c.pt", progress=False, init=first)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,7 @@ class OptimCfg:
     batch: int = 20
     steps: int = 13000
     warmup: int = 0
+    schedule: str = "constant"   # or "cosine": after warmup, decay to 10 % of each learning rate at the last step
 
 
 @dataclass(frozen=True)
@@ -106,4 +108,18 @@ def load_train_config(path: str | Path) -> TrainConfig:
     cfg = build_dataclass(TrainConfig, data, str(p), TrainConfigError)
     if cfg.data.mask_mode not in ("amodal", "modal"):
         raise TrainConfigError(f"{p}: data.mask_mode must be 'amodal' or 'modal', got {cfg.data.mask_mode!r}")
+    if cfg.optim.schedule not in ("constant", "cosine"):
+        raise TrainConfigError(f"{p}: optim.schedule must be 'constant' or 'cosine', got {cfg.optim.schedule!r}")
     return cfg
+
+
+def lr_factor(optim: OptimCfg, step: int, total_steps: int) -> float:
+    """Multiplier of the base learning rates at ``step`` (0-based): linear warm-up over ``optim.warmup``
+    steps, then constant or a cosine decay reaching 10 % at ``total_steps``."""
+    if optim.warmup > 0 and step < optim.warmup:
+        return (step + 1) / optim.warmup
+    if optim.schedule == "constant":
+        return 1.0
+    span = max(total_steps - optim.warmup, 1)
+    x = min(max(step - optim.warmup, 0) / span, 1.0)
+    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * x))

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from surftrack.geometry import rotation_angle_deg
 from surftrack.model import losses
 from surftrack.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from surftrack.model.config import TrainConfig, TrainConfigError
+from surftrack.model.config import TrainConfig, TrainConfigError, lr_factor
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D, surface_bank
 
 BANK_SIZE = 20000
@@ -92,6 +92,12 @@ class Trainer:
             alpha=cfg.alpha, beta=cfg.beta, lam=cfg.lam, m=cfg.m, pen_floor=cfg.pen_floor)
         out["empty_masks"] = empty.sum().float()
         return out
+
+    def set_lr(self, factor: float) -> None:
+        """Scale the configured learning rates (network, fields) by ``factor``."""
+        o = self.cfg.optim
+        for group, base in zip(self.optimizer.param_groups, (o.lr_net, o.lr_field)):
+            group["lr"] = base * factor
 
     def step(self, batch: dict, module: torch.nn.Module | None = None) -> dict[str, float]:
         self.model.train()
@@ -206,9 +212,12 @@ def _subset(ds, bop_indices: list[int]):
 
 
 def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | None = None, resume: bool = False,
-          device: str | None = None, progress: bool = True, log_dir: str | Path | None = None) -> dict:
+          device: str | None = None, progress: bool = True, log_dir: str | Path | None = None,
+          init: str | Path | None = None) -> dict:
     """Train on the BOP dataset ``data_dir``; writes ``out`` (checkpoint), and next to it
-    ``<out stem>.metrics.jsonl``, ``<out stem>.curves.png`` and ``<out stem>.fp16.pt``. Returns a summary."""
+    ``<out stem>.metrics.jsonl``, ``<out stem>.curves.png`` and ``<out stem>.fp16.pt``. Returns a summary.
+    ``init`` starts a new run from another checkpoint's weights (same parts and architecture; fresh optimiser,
+    step 0), e.g. to fine-tune a model on more data."""
     from tqdm import tqdm
 
     from surftrack.data import BopDataset, CropDataset, MixedSampler, mixed_dataset
@@ -274,6 +283,16 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
             metrics_path.write_text("".join(r + "\n" for r in rows))
     else:
         model = SurfSurg6D(parts, cfg.model).to(dev)
+        if init is not None:
+            src, _, _ = load_checkpoint(init, dev)
+            if [p.mesh_sha256 for p in src.parts] != [p.mesh_sha256 for p in parts]:
+                raise CheckpointError(f"{init}: its parts do not match the dataset's models; cannot start from it")
+            try:
+                model.load_state_dict(src.state_dict())
+            except RuntimeError as e:
+                raise CheckpointError(f"{init}: its architecture differs from the config's model: "
+                                      f"{str(e).splitlines()[0]}") from None
+            del src
         if dev.type == "cuda":
             model = model.to(memory_format=torch.channels_last)
         trainer = Trainer(model, cfg, dev)
@@ -310,6 +329,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
             for batch in loader:
                 if step >= total_steps:
                     break
+                trainer.set_lr(lr_factor(cfg.optim, step, total_steps))
                 logs = trainer.step(batch, module)
                 step += 1
                 seen += batch["image"].shape[0] * world
