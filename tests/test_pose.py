@@ -108,6 +108,21 @@ def test_fast_preset_solver(lnd):
     assert re < 1.5 and te < 1.5, f"RE {re:.3f} deg, TE {te:.3f} mm, {sol.counts}"
 
 
+def test_prior_pose_is_kept_only_when_it_scores_best(lnd):
+    """The tracker hands its pose to the estimator as a prior: the true pose beats the hypotheses of a
+    field with few draws; a wrong prior (20 deg off) loses to them."""
+    preset = PRESETS["fast"]
+    pb = _rendered(lnd, "wrist", 0, preset)
+    true = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0),
+                       prior=(pb.R, pb.t))
+    assert true.counts["prior_won"] == 1
+    assert rotation_angle_deg(true.R, pb.R) < 1.0 and np.linalg.norm(true.t - pb.t) < 1.0
+    off = Rotation.from_rotvec(np.radians(20) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    wrong = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0),
+                        prior=(pb.R @ off, pb.t + 5.0))
+    assert wrong.counts["prior_won"] == 0 and rotation_angle_deg(wrong.R, pb.R) < 1.5
+
+
 @pytest.fixture(scope="module")
 def tiny_model(lnd):
     parts = [PartInfo.from_part(i + 1, lnd.name, lnd.parts[n]) for i, n in enumerate(lnd.part_names)]

@@ -91,6 +91,7 @@ class _Crop:
     crop_box: Box
     K_crop: np.ndarray
     pixels: np.ndarray
+    prior: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class PoseEstimator:
@@ -187,19 +188,23 @@ class PoseEstimator:
             raise ValueError(f"{where}: {e}") from None
 
     # ------------------------------------------------------------------ estimation
-    def estimate(self, image: np.ndarray, boxes, K: np.ndarray) -> list[PartPose]:
+    def estimate(self, image: np.ndarray, boxes, K: np.ndarray,
+                 priors: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None) -> list[PartPose]:
         """Poses of the parts in ``boxes`` (dict obj_id -> (x, y, w, h), or a list of (obj_id, box) for
         repeated ids) seen in ``image`` ((H, W, 3) uint8 RGB) with intrinsics ``K``; one
-        :class:`PartPose` per box, in order."""
-        return self.estimate_batch([image], [boxes], [K])[0]
+        :class:`PartPose` per box, in order. ``priors`` (obj_id -> (R, t)): poses known from elsewhere
+        (a tracker's), scored with the hypotheses and kept when they explain the image best."""
+        return self.estimate_batch([image], [boxes], [K], None if priors is None else [priors])[0]
 
     @torch.inference_mode()
     def estimate_batch(self, images: Sequence[np.ndarray], boxes_per_image: Sequence,
-                       Ks: Sequence) -> list[list[PartPose]]:
+                       Ks: Sequence, priors: Sequence[Mapping | None] | None = None) -> list[list[PartPose]]:
         """:meth:`estimate` for several frames; all crops share the network forward passes."""
         if not (len(images) == len(boxes_per_image) == len(Ks)):
             raise ValueError(f"need as many box sets and K as images, got {len(images)}, {len(boxes_per_image)} "
                              f"and {len(Ks)}")
+        if priors is not None and len(priors) != len(images):
+            raise ValueError(f"need one prior mapping (or None) per image, got {len(priors)} for {len(images)}")
         S = self.crop_size
         crops: list[_Crop] = []
         t0 = time.perf_counter()
@@ -210,8 +215,9 @@ class PoseEstimator:
             for obj_id, box in self._boxes(bx, img.shape[:2], where):
                 cbox = square_crop_box(box, self.box_scale)
                 M, ccam = crop_affine(cam, cbox, (S, S))
+                prior = (priors[i] or {}).get(obj_id) if priors is not None else None
                 crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
-                                   warp_image(img, M, S)))
+                                   warp_image(img, M, S), prior))
         crop_ms = (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
         results: list[list[PartPose]] = [[] for _ in images]
         if not crops:
@@ -261,7 +267,7 @@ class PoseEstimator:
             field_ = build_field(mask, query, bank.keys, P.alpha, P.stride, P.mask_threshold, P.min_active,
                                  P.max_active, 4 * P.n_hypotheses, gen)
         box_side = self.crop_size / self.box_scale / P.stride
-        sol = solve_field(field_, bank, grid_camera(c.K_crop, P.stride), box_side, P, gen, timer)
+        sol = solve_field(field_, bank, grid_camera(c.K_crop, P.stride), box_side, P, gen, timer, prior=c.prior)
         ms = dict(timer.ms, crop=crop_ms, forward=fwd_ms)
         ms = {s: ms.get(s, 0.0) for s in STAGES} | ({"keys": ms["keys"]} if "keys" in ms else {})
         ms["total"] = sum(ms.values())

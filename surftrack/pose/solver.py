@@ -67,16 +67,19 @@ def _placeholder(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor,
 
 @torch.inference_mode()
 def solve_field(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor, box_side: float, preset: Preset,
-                generator: torch.Generator | None = None, timer: StageTimer | None = None) -> Solution:
+                generator: torch.Generator | None = None, timer: StageTimer | None = None,
+                prior: tuple[np.ndarray, np.ndarray] | None = None) -> Solution:
     """Pose of the part seen in ``field_``. ``K_grid``: grid intrinsics (3, 3); ``box_side``: the
-    detection box's longer side in grid pixels; ``generator``: torch generator on the field's device."""
+    detection box's longer side in grid pixels; ``generator``: torch generator on the field's device.
+    ``prior`` (R, t): a pose from elsewhere (e.g. the tracker's) scored with the hypotheses; it wins, and
+    is then refined, only if it scores best (``counts["prior_won"]``)."""
     dev = field_.query.device
     timer = timer or StageTimer(dev)
     K = K_grid.to(dev, torch.float64)
     with timer("hypotheses"):
         hyp = sample_hypotheses(field_, bank, K, box_side, preset, generator)
     counts = dict(hyp.counts, relaxed=int(hyp.relaxed), active=len(field_.active))
-    if len(hyp.R) == 0:
+    if len(hyp.R) == 0 and (prior is None or len(field_.active) == 0):
         R, t = _placeholder(field_, bank, K, box_side)
         return Solution(R, t, float("-inf"), 0, False, counts, dict(timer.ms))
     with timer("scoring"):
@@ -85,8 +88,14 @@ def solve_field(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor, box_
             pre = score_poses(Rh, th, field_, bank, K, preset, density=preset.prescore_density)
             top = torch.topk(pre, preset.rescore_top).indices
             Rh, th = Rh[top], th[top]
+        if prior is not None:
+            Rp = torch.as_tensor(np.asarray(prior[0]), dtype=Rh.dtype, device=Rh.device).reshape(1, 3, 3)
+            tp = torch.as_tensor(np.asarray(prior[1]), dtype=th.dtype, device=th.device).reshape(1, 3)
+            Rh, th = torch.cat([Rh, Rp]), torch.cat([th, tp])
         scores = score_poses(Rh, th, field_, bank, K, preset)
         best = int(torch.argmax(scores))
+        if prior is not None:
+            counts["prior_won"] = int(best == len(Rh) - 1)
         R0, t0, s0 = Rh[best].cpu().numpy(), th[best].cpu().numpy(), float(scores[best])
     with timer("refinement"):
         pts = bank.points[field_.best].double().cpu().numpy()
