@@ -1,4 +1,8 @@
-"""The ``surftrack`` command line."""
+"""The ``surftrack`` command line.
+
+The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAMERA.json`` (the same as
+``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, train, eval.
+"""
 
 from __future__ import annotations
 
@@ -130,6 +134,40 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_track(args: argparse.Namespace) -> int:
+    from surftrack.annotate import AnnotateOptions, annotate_video, video_jobs
+    from surftrack.track import load_track_config
+
+    cfg = load_track_config(args.config)
+    if args.keyframe_every is not None:
+        if args.keyframe_every < 1:
+            raise CLIError(f"--keyframe-every must be >= 1, got {args.keyframe_every}")
+        cfg = cfg.replace(keyframe_every=args.keyframe_every)
+    if args.preset is not None:
+        cfg = cfg.replace(preset=args.preset)
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise CLIError("--device cuda: no CUDA device is available (use --device cpu)")
+    jobs = video_jobs(args.video, args.boxes, args.camera, args.out)
+    if len(jobs) > 1 and (args.overlay or args.export_tum):
+        raise CLIError("--overlay and --export-tum take one video; with a folder, run the videos one by one")
+    for video, boxes, camera, out in jobs:
+        opts = AnnotateOptions(model=args.model, camera=camera, out=out, config=cfg, device=args.device,
+                               start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
+                               mcap_images=args.images, progress=not args.quiet)
+        s = annotate_video(video, boxes, opts)
+        for note in s["notes"]:
+            print(f"note: {note}")
+        print(f"surftrack: {s['video']}: {s['frames']} frames in {s['seconds']:.1f} s ({s['fps']:.1f} frames/s)")
+        for name, p in s["parts"].items():
+            fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
+            print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
+        print("wrote " + ", ".join(s["outputs"].values()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
@@ -184,6 +222,26 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_eval)
+
+    tk = sub.add_parser("track", help="track the instrument parts of a video (the main command; "
+                                      "`surftrack VIDEO ...` means `surftrack track VIDEO ...`)")
+    tk.add_argument("video", help="video file, or a folder of videos")
+    tk.add_argument("--boxes", required=True, help="det.json or COCO detections (a folder for a folder of videos)")
+    tk.add_argument("--camera", help="camera.json (K, width, height, dist) or a BOP scene_camera.json "
+                                     "(default: <video stem>.camera.json or camera.json beside the video)")
+    tk.add_argument("--model", help="checkpoint (default: the bundled Large Needle Driver model)")
+    tk.add_argument("-o", "--out", help="MCAP file (default: the video's name with .mcap; a folder for a folder)")
+    tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
+    tk.add_argument("--preset", choices=["fast", "accurate"], help="estimator preset (default from the config)")
+    tk.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
+    tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
+    tk.add_argument("--start", type=float, help="first second of video to track")
+    tk.add_argument("--end", type=float, help="last second of video to track")
+    tk.add_argument("--overlay", metavar="OUT.mp4", help="also write a video with axes, outlines and status")
+    tk.add_argument("--export-tum", metavar="DIR", help="also write one TUM trajectory per part (metres)")
+    tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
+    tk.add_argument("--quiet", action="store_true", help="no progress bar")
+    tk.set_defaults(func=_cmd_track)
     return p
 
 
@@ -197,10 +255,17 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.checkpoint import CheckpointError
     from surftrack.model.config import TrainConfigError
 
-    errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
-              DatasetError, OSError)
+    from surftrack.track import InputError, TrackConfigError
 
-    args = build_parser().parse_args(argv)
+    errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
+              DatasetError, InputError, TrackConfigError, OSError)
+
+    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    if argv and not argv[0].startswith("-") and argv[0] not in commands:
+        argv.insert(0, "track")  # `surftrack VIDEO --boxes ...` is the main command
+    args = parser.parse_args(argv)
     try:
         return int(args.func(args))
     except errors as e:

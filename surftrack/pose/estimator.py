@@ -192,8 +192,9 @@ class PoseEstimator:
                  priors: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None) -> list[PartPose]:
         """Poses of the parts in ``boxes`` (dict obj_id -> (x, y, w, h), or a list of (obj_id, box) for
         repeated ids) seen in ``image`` ((H, W, 3) uint8 RGB) with intrinsics ``K``; one
-        :class:`PartPose` per box, in order. ``priors`` (obj_id -> (R, t)): poses known from elsewhere
-        (a tracker's), scored with the hypotheses and kept when they explain the image best."""
+        :class:`PartPose` per box, in order. ``priors`` (obj_id -> (R, t), or a list aligned with a list
+        of boxes, None entries allowed): poses known from elsewhere (a tracker's), scored with the
+        hypotheses and kept when they explain the image best."""
         return self.estimate_batch([image], [boxes], [K], None if priors is None else [priors])[0]
 
     @torch.inference_mode()
@@ -212,10 +213,11 @@ class PoseEstimator:
             where = f"image {i}"
             img = self._image(img, where)
             cam = self._camera(K, img.shape[:2], where)
-            for obj_id, box in self._boxes(bx, img.shape[:2], where):
+            pri = priors[i] if priors is not None else None
+            for j, (obj_id, box) in enumerate(self._boxes(bx, img.shape[:2], where)):
                 cbox = square_crop_box(box, self.box_scale)
                 M, ccam = crop_affine(cam, cbox, (S, S))
-                prior = (priors[i] or {}).get(obj_id) if priors is not None else None
+                prior = None if pri is None else (pri.get(obj_id) if isinstance(pri, Mapping) else pri[j])
                 crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
                                    warp_image(img, M, S), prior))
         crop_ms = (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)

@@ -1,6 +1,16 @@
-"""Temporal tracking of per-part poses: :class:`PoseKalman`, a 12-state error-state constant-velocity
-Kalman filter (right/body rotation error, nominal rotation outside the filter, pre-update chi2 gating)."""
+"""Temporal tracking of per-part poses.
 
+:class:`Tracker` runs the per-part state machine (:mod:`.tracker`): the pose estimator initialises and
+recovers parts, pyramidal LK on model points plus PnP (:mod:`.flow`) measures between keyframes, and
+:class:`PoseKalman` (:mod:`.kalman`, 12-state error-state constant velocity, gated before update) fuses
+them. :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
+:mod:`.config` holds the settings (``configs/track/default.yaml``).
+"""
+
+from surftrack.track.config import TrackConfig, TrackConfigError, load_track_config
+from surftrack.track.inputs import InputError
 from surftrack.track.kalman import CHI2_6DOF_999, KalmanConfig, PoseKalman
+from surftrack.track.tracker import STATUSES, PartSpec, PartState, Tracker, box_iou, projected_box
 
-__all__ = ["CHI2_6DOF_999", "KalmanConfig", "PoseKalman"]
+__all__ = ["CHI2_6DOF_999", "InputError", "KalmanConfig", "PartSpec", "PartState", "PoseKalman", "STATUSES",
+           "TrackConfig", "TrackConfigError", "Tracker", "box_iou", "load_track_config", "projected_box"]

@@ -1,0 +1,291 @@
+"""The main job: track every part of every instrument through a video and write the results.
+
+``annotate_video(video, boxes, ...)`` validates all inputs before heavy work (video decodable, camera
+and detections consistent with it, model knows the parts, outputs writable), then streams the video
+frame by frame through :class:`surftrack.track.Tracker` (memory flat in the video's length) and writes:
+
+* an MCAP file for Foxglove (:class:`surftrack.io.TrackWriter`): per part pose and status on every frame,
+  ``/tf``, camera calibration, part meshes, optional JPEG frames with annotations, file metadata;
+* optionally an overlay video and TUM trajectories (one file per part).
+
+Every output is finalised when the run stops early (bad frame, Ctrl-C): what was written stays valid.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from surftrack import __version__
+from surftrack.synth.video import read_video_frames
+from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
+from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+STATUS_COLOURS = {"keyframe": (0.0, 0.9, 1.0, 1.0), "tracking": (0.1, 1.0, 0.2, 1.0),
+                  "predicted": (1.0, 0.85, 0.0, 1.0)}
+
+
+@dataclass
+class AnnotateOptions:
+    """What to write and how to track. ``start``/``end``: seconds of video time (None = from the start /
+    to the end). ``mcap_images``: JPEG frames plus annotations in the MCAP (bigger files)."""
+
+    model: str | Path | None = None
+    camera: str | Path | None = None
+    out: str | Path | None = None
+    config: TrackConfig = field(default_factory=TrackConfig)
+    device: str | None = None
+    start: float | None = None
+    end: float | None = None
+    overlay: str | Path | None = None
+    export_tum: str | Path | None = None
+    mcap_images: bool = False
+    progress: bool = True
+
+
+def match_parts(doc: dict, model, source: str) -> tuple[list[PartSpec], list[str]]:
+    """PartSpecs for the det.json parts the model knows, and a note per skipped instrument. An
+    instrument the model knows with a part name it lacks is an error (a typo, not another tool); no known
+    part at all is an error."""
+    from surftrack.instruments import load_instrument
+
+    def canonical(name: str) -> str:
+        try:
+            return load_instrument(name).name
+        except Exception:  # noqa: BLE001 - an instrument we do not ship is still a valid name
+            return name
+
+    by_key = {(p.instrument, p.name): p for p in model.parts}
+    known_instruments = {p.instrument for p in model.parts}
+    specs, skipped = [], {}
+    for pid, d in sorted(doc["parts"].items(), key=lambda kv: int(kv[0])):
+        inst = canonical(d["instrument"])
+        info = by_key.get((inst, d["part"]))
+        if info is None:
+            if inst in known_instruments:
+                names = sorted(p.name for p in model.parts if p.instrument == inst)
+                raise InputError(f"{source}: $.parts.{pid}: {inst} has no part {d['part']!r} in the model "
+                                 f"(its parts: {', '.join(names)})")
+            skipped.setdefault(inst, []).append(int(pid))
+            continue
+        specs.append(PartSpec(int(pid), info.obj_id, inst, int(d["instance"]), d["part"],
+                              np.asarray(info.vertices, np.float64), np.asarray(info.faces, np.int64)))
+    if not specs:
+        raise InputError(f"{source}: none of its parts is known to the model (model instruments: "
+                         f"{', '.join(sorted(known_instruments))}; file: {', '.join(sorted(skipped))})")
+    notes = [f"{inst}: parts {ids} are not in the model and are not tracked" for inst, ids in skipped.items()]
+    return specs, notes
+
+
+def _frame_boxes(doc: dict) -> dict[int, dict[int, list]]:
+    out: dict[int, dict[int, list]] = {}
+    for f in doc["frames"]:
+        per = out.setdefault(int(f["index"]), {})
+        for d in f["detections"]:
+            per.setdefault(int(d["part_id"]), []).append((tuple(float(v) for v in d["bbox"]), float(d["score"])))
+    return out
+
+
+def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
+    """Projected axes (x red, y green, z blue), boxes and labels for ImageAnnotations."""
+    from surftrack.io.overlay import project_axes
+
+    points, texts = [], []
+    axis_rgb = ((1, 0, 0, 1), (0, 1, 0, 1), (0, 0.4, 1, 1))
+    for s in states:
+        if s.box is not None:
+            x, y, w, h = s.box
+            points.append({"points": [(x, y), (x + w, y), (x + w, y + h), (x, y + h)], "type": "line_loop",
+                           "color": STATUS_COLOURS.get(s.status, (0.6, 0.6, 0.6, 1.0)), "thickness": 1.0})
+        if s.R is None:
+            continue
+        ax = project_axes(K, s.R, s.t, 8.0)
+        if np.all(np.isfinite(ax)):
+            for k in range(3):
+                points.append({"points": [ax[0], ax[k + 1]], "type": "line_list", "color": axis_rgb[k],
+                               "thickness": 2.0})
+            texts.append({"position": ax[0], "text": f"{s.spec.part} {s.status} {s.confidence:.2f}",
+                          "font_size": 11.0})
+    return {"points": points, "texts": texts}
+
+
+def _video_frames(path: Path):
+    """read_video_frames with decoding failures mid-stream (truncated, corrupt) as InputError."""
+    it = read_video_frames(path)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except ValueError as e:
+            raise InputError(str(e)) from None
+        yield item
+
+
+def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
+                   on_frame: Callable[[int, float, list[PartState]], None] | None = None) -> dict:
+    """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
+    part, outputs). ``on_frame(index, time_s, states)`` is called after every processed frame."""
+    from surftrack.io import TrackWriter
+    from surftrack.model.checkpoint import load_checkpoint
+    from surftrack.paths import default_model_path
+    from surftrack.pose import PoseEstimator
+
+    opts = opts or AnnotateOptions()
+    video = Path(video)
+    info = probe_video(video)
+    size = (info.width, info.height)
+    doc = load_boxes(boxes, size)
+    camera = opts.camera
+    if camera is None:
+        camera = next((c for c in (video.with_suffix(".camera.json"), video.parent / "camera.json") if c.is_file()),
+                      None)
+        if camera is None:
+            raise InputError(f"{video}: no intrinsics: pass --camera camera.json (K, width, height), or put a "
+                             f"camera.json beside the video")
+    cam = load_camera(camera, size)
+    if opts.start is not None and opts.end is not None and opts.end <= opts.start:
+        raise InputError(f"--end {opts.end} must be after --start {opts.start}")
+    model_path = Path(opts.model) if opts.model is not None else default_model_path()
+    if not model_path.is_file():
+        raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
+    model, train_cfg, _ = load_checkpoint(model_path, opts.device or "cpu")
+    specs, notes = match_parts(doc, model, str(boxes))
+    out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
+    estimator = PoseEstimator(model, opts.config.preset, device=opts.device, crop_size=train_cfg.data.crop,
+                              box_scale=train_cfg.data.scale)
+    tracker = Tracker(estimator, cam.K, size, specs, opts.config)
+    undistort = cam.undistorter()
+    per_frame = _frame_boxes(doc)
+    det_times = {int(f["index"]): float(f["time"]) for f in doc["frames"]} \
+        if not doc.get("_times_from_video") else {}
+    half_frame = 0.5 / info.fps
+
+    meta = {"video": str(video), "boxes": str(boxes), "camera": str(camera), "model": str(model_path),
+            "config": opts.config.to_dict(), "surftrack_version": __version__,
+            "parts": {s.name: {"track_id": s.track_id, "obj_id": s.obj_id} for s in specs}}
+    counts = {s.name: Counter() for s in specs}
+    conf_sum = {s.name: 0.0 for s in specs}
+    timing = Counter()
+    n_done, t_first, stopped = 0, None, None
+    overlay = tum = None
+    from tqdm import tqdm
+
+    writer = TrackWriter(out, meta)  # opened before heavy work: an unwritable path fails here
+    try:
+        if opts.overlay is not None:
+            from surftrack.io.overlay import OverlayWriter
+
+            overlay = OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K)
+        if opts.export_tum is not None:
+            from surftrack.io.tum import TumWriter
+
+            tum = TumWriter(opts.export_tum)
+        bar = tqdm(total=info.frames or None, unit="frame", desc=video.name, disable=not opts.progress)
+        wall0 = time.perf_counter()
+        try:
+            frames = _video_frames(video)
+            for index, (t_s, frame) in enumerate(frames):
+                if opts.start is not None and t_s < opts.start - 1e-9:
+                    bar.update(1)
+                    continue
+                if opts.end is not None and t_s > opts.end + 1e-9:
+                    break
+                if index in det_times and abs(det_times[index] - t_s) > half_frame:
+                    raise InputError(f"{boxes}: frame {index} is at {det_times[index]:.3f} s there but at "
+                                     f"{t_s:.3f} s in {video}: the boxes belong to another video or frame rate")
+                frame = undistort(frame)
+                if t_first is None:
+                    t_first = t_s
+                    writer.camera_calibration(t_s, cam.K, info.width, info.height)
+                    writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
+                                              for s in specs})
+                t0 = time.perf_counter()
+                states = tracker.step(frame, t_s, per_frame.get(index))
+                timing["track_s"] += time.perf_counter() - t0
+                posed = {s.spec.name: (s.R, s.t) for s in states if s.R is not None}
+                for s in states:
+                    writer.status(t_s, s.spec.name, s.status, s.confidence, s.info)
+                    counts[s.spec.name][s.status] += 1
+                    conf_sum[s.spec.name] += s.confidence
+                if posed:
+                    writer.poses(t_s, posed)
+                if opts.mcap_images:
+                    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
+                                           [cv2.IMWRITE_JPEG_QUALITY, 85])
+                    writer.image_jpeg(t_s, jpg.tobytes())
+                    writer.annotations(t_s, **_annotations(cam.K, states))
+                if overlay is not None:
+                    from surftrack.io.overlay import PartOverlay
+
+                    overlay.write(frame, t_s, [PartOverlay(s.spec.name, s.status, s.confidence, s.R, s.t, s.box,
+                                                           (s.spec.vertices, s.spec.faces), 8.0) for s in states])
+                if tum is not None:
+                    for name, (R, t) in posed.items():
+                        tum.add(name, t_s, R, t)
+                if on_frame is not None:
+                    on_frame(index, t_s, states)
+                n_done += 1
+                bar.update(1)
+                bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
+        except KeyboardInterrupt:
+            stopped = "interrupted"
+            raise
+        finally:
+            bar.close()
+            wall = time.perf_counter() - wall0
+    finally:
+        writer.close()
+        if overlay is not None:
+            overlay.close()
+        if tum is not None:
+            tum.close()
+    if n_done == 0:
+        raise InputError(f"{video}: no frame between --start and --end")
+    outputs = {"mcap": str(out)}
+    if opts.overlay is not None:
+        outputs["overlay"] = str(opts.overlay)
+    if opts.export_tum is not None:
+        outputs["tum"] = str(opts.export_tum)
+    return {"video": str(video), "frames": n_done, "seconds": wall, "fps": n_done / max(wall, 1e-9),
+            "track_ms_per_frame": 1e3 * timing["track_s"] / n_done, "notes": notes, "stopped": stopped,
+            "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}
+                      for name, c in counts.items()},
+            "outputs": outputs}
+
+
+def video_jobs(video: str | Path, boxes: str | Path, camera: str | Path | None,
+               out: str | Path | None) -> list[tuple[Path, Path, Path | None, Path | None]]:
+    """(video, boxes, camera, mcap) per job. A folder of videos takes ``boxes`` as a folder holding
+    ``<stem>.json`` (or ``<stem>.det.json``) per video, ``camera`` as one file for all or a folder with
+    ``<stem>.json``, and writes ``<out folder>/<stem>.mcap`` (default: beside the videos)."""
+    video = Path(video)
+    if not video.is_dir():
+        return [(video, Path(boxes), Path(camera) if camera else None, Path(out) if out else None)]
+    vids = sorted(p for p in video.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+    if not vids:
+        raise InputError(f"{video}: folder holds no video ({', '.join(VIDEO_SUFFIXES)})")
+    bdir = Path(boxes)
+    if not bdir.is_dir():
+        raise InputError(f"{bdir}: with a folder of videos, --boxes must be a folder of <video stem>.json files")
+    jobs = []
+    for v in vids:
+        b = next((c for c in (bdir / f"{v.stem}.json", bdir / f"{v.stem}.det.json") if c.is_file()), None)
+        if b is None:
+            raise InputError(f"{bdir}: no {v.stem}.json or {v.stem}.det.json for video {v.name}")
+        c = None
+        if camera is not None:
+            cp = Path(camera)
+            c = cp / f"{v.stem}.json" if cp.is_dir() else cp
+        o = (Path(out) / f"{v.stem}.mcap") if out is not None else v.with_suffix(".mcap")
+        jobs.append((v, b, c, o))
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    return jobs

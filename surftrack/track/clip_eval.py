@@ -1,0 +1,107 @@
+"""Tracks against the ground truth of a synthetic clip (``gt.json`` of ``surftrack synth-clip``).
+
+:class:`TrackScore` accumulates, per part, every frame's pose against the ground truth while a run
+streams (feed it from ``annotate_video(on_frame=...)``) and reports RE, TE, ADD, ADD-10 (with the
+SurgRIPE diameter: the model's bounding-box diagonal, the convention of the paper's tables), the share
+of frames with a pose while the part is visible, and jitter: the mean frame-to-frame pose change minus
+the ground truth's (mm, deg), over consecutive frames that both have a pose.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from surftrack.eval import add, diameter_bbox_diagonal, re, te
+from surftrack.track.flow import pose_distance
+from surftrack.track.tracker import PartState
+
+
+class ClipGroundTruth:
+    """Per-frame part poses of a clip, keyed by det.json track id."""
+
+    def __init__(self, path: str | Path):
+        path = Path(path)
+        doc = json.loads(path.read_text())
+        if doc.get("format") != "surftrack-clip-gt":
+            raise ValueError(f"{path}: not a clip ground-truth file (format {doc.get('format')!r})")
+        self.frames: dict[int, dict[int, dict]] = {}
+        for k, f in doc["frames"].items():
+            self.frames[int(k)] = {int(g["part_id"]): g for g in f["gt"]}
+
+    def pose(self, index: int, track_id: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """(R, t mm, visible pixels) of a part at a frame."""
+        g = self.frames[index][track_id]
+        return (np.asarray(g["cam_R_m2c"], np.float64).reshape(3, 3), np.asarray(g["cam_t_m2c"], np.float64),
+                int(g["px_count_visib"]))
+
+
+class TrackScore:
+    """Accumulates per-part errors over a run; :meth:`summary` gives the table. Parts count on frames
+    where at least ``min_visible_px`` of them are visible."""
+
+    def __init__(self, gt: ClipGroundTruth, min_visible_px: int = 100):
+        self.gt, self.min_visible_px = gt, min_visible_px
+        self.rows: dict[str, dict] = {}
+        self._prev: dict[str, tuple] = {}
+        self._diam: dict[str, float] = {}
+        self._pts: dict[str, np.ndarray] = {}
+
+    def add_frame(self, index: int, time_s: float, states: list[PartState]) -> None:
+        for s in states:
+            name = s.spec.name
+            if name not in self._pts:
+                v = s.spec.vertices
+                self._pts[name] = v if len(v) <= 2000 else v[np.random.default_rng(0).choice(len(v), 2000, False)]
+                self._diam[name] = diameter_bbox_diagonal(v)
+            row = self.rows.setdefault(name, {"re": [], "te": [], "add": [], "visible": 0, "posed": 0,
+                                              "jit_t": [], "jit_r": []})
+            Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
+            prev = self._prev.get(name)
+            self._prev[name] = (index, s.R, s.t, Rg, tg)
+            if vis < self.min_visible_px:
+                continue
+            row["visible"] += 1
+            if s.R is None:
+                continue
+            row["posed"] += 1
+            row["re"].append(re(s.R, Rg))
+            row["te"].append(te(s.t, tg))
+            row["add"].append(add(s.R, s.t, Rg, tg, self._pts[name]))
+            if prev is not None and prev[0] == index - 1 and prev[1] is not None:
+                dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
+                gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
+                row["jit_r"].append(dr - gr)
+                row["jit_t"].append(dt - gt_)
+
+    def summary(self) -> dict[str, dict]:
+        """Per part: frames visible / with a pose, RE and TE medians, ADD mean, ADD-10 (%, over visible
+        frames: a frame without a pose counts as a miss), jitter (mm, deg)."""
+        out = {}
+        for name, r in self.rows.items():
+            n = max(r["visible"], 1)
+            ok = sum(a < 0.1 * self._diam[name] for a in r["add"])
+            out[name] = {
+                "visible_frames": r["visible"], "posed_frames": r["posed"],
+                "re_median_deg": float(np.median(r["re"])) if r["re"] else float("nan"),
+                "te_median_mm": float(np.median(r["te"])) if r["te"] else float("nan"),
+                "add_mean_mm": float(np.mean(r["add"])) if r["add"] else float("nan"),
+                "add10_pct": 100.0 * ok / n,
+                "jitter_mm": float(np.mean(r["jit_t"])) if r["jit_t"] else float("nan"),
+                "jitter_deg": float(np.mean(r["jit_r"])) if r["jit_r"] else float("nan"),
+                "diameter_mm": self._diam[name],
+            }
+        return out
+
+
+def format_summary(summary: dict[str, dict]) -> str:
+    """A markdown table of :meth:`TrackScore.summary`."""
+    lines = ["| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, r in summary.items():
+        lines.append(f"| {name} | {r['visible_frames']} | {r['posed_frames']} | {r['re_median_deg']:.1f} | "
+                     f"{r['te_median_mm']:.1f} | {r['add_mean_mm']:.1f} | {r['add10_pct']:.1f} | "
+                     f"{r['jitter_mm']:.2f} / {r['jitter_deg']:.2f} |")
+    return "\n".join(lines) + "\n"

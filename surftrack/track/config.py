@@ -1,0 +1,100 @@
+"""Tracking configuration (``configs/track/*.yaml``): when the estimator runs, how flow is checked, and the
+Kalman filter's noise. Defaults are the values of ``configs/track/default.yaml``."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from surftrack.configio import build_dataclass
+from surftrack.track.kalman import KalmanConfig
+
+
+class TrackConfigError(ValueError):
+    """A malformed tracking configuration; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """``preset``: the estimator preset for keyframes. ``keyframe_every``: frames between estimator runs
+    on a tracked part (the tracked pose is offered as a prior, so a keyframe replaces it only when the
+    estimator finds a pose that explains the image better). ``min_box_score``: detections below are
+    ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
+    re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
+    row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
+    part whose projected box keeps less than this fraction inside the image is lost.
+
+    Flow: up to ``max_points`` points per part; refreshed from the current pose on keyframes, every
+    ``refresh_every`` frames and when fewer than ``refresh_below`` of them survive. A flow measurement
+    needs ``min_points`` PnP inliers within ``inlier_px``, an inlier ratio >= ``min_inlier_ratio`` and an
+    RMS error <= ``max_rms_px``. Its covariance (from the PnP Jacobian) gets ``flow_floor_mm`` /
+    ``flow_floor_deg`` added (model error). Estimator poses are fused with ``est_pos_std_mm`` /
+    ``est_rot_std_deg``; an initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+    """
+
+    preset: str = "fast"
+    keyframe_every: int = 15
+    min_box_score: float = 0.3
+    min_iou: float = 0.2
+    max_predicted: int = 3
+    min_visible: float = 0.15
+    max_points: int = 80
+    refresh_every: int = 10
+    refresh_below: float = 0.6
+    min_points: int = 6
+    inlier_px: float = 3.0
+    min_inlier_ratio: float = 0.5
+    max_rms_px: float = 2.0
+    flow_floor_mm: float = 0.3
+    flow_floor_deg: float = 0.3
+    est_pos_std_mm: float = 3.0
+    est_rot_std_deg: float = 5.0
+    init_min_inliers: int = 6
+    init_min_score: float = 0.0
+    kalman: KalmanConfig = field(default_factory=KalmanConfig)
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v, kind = getattr(self, f.name), type(f.default) if f.default is not dataclasses.MISSING else None
+            if kind in (int, float):
+                ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (kind is float or float(v).is_integer())
+                if not ok:
+                    raise ValueError(f"{f.name} must be {'an integer' if kind is int else 'a number'}, got {v!r}")
+                object.__setattr__(self, f.name, kind(v))
+            elif kind is str and not isinstance(v, str):
+                raise ValueError(f"{f.name} must be a string, got {v!r}")
+        if self.preset not in ("fast", "accurate"):
+            raise ValueError(f"preset must be 'fast' or 'accurate', got {self.preset!r}")
+        if self.keyframe_every < 1:
+            raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
+        for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
+        for name in ("max_points", "min_points", "refresh_every", "max_predicted"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes) -> TrackConfig:
+        return dataclasses.replace(self, **changes)
+
+
+def load_track_config(path: str | Path | None = None) -> TrackConfig:
+    """Load ``path`` (YAML; a bare name like ``default`` means ``configs/track/default.yaml``; None = the
+    default file)."""
+    from surftrack.paths import configs_dir
+
+    p = Path(path) if path is not None else configs_dir() / "track" / "default.yaml"
+    if not p.suffix and not p.exists():
+        p = configs_dir() / "track" / f"{path}.yaml"
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise TrackConfigError(f"{p}: cannot read tracking config: {e}") from None
+    return build_dataclass(TrackConfig, data, str(p), TrackConfigError)

@@ -1,0 +1,299 @@
+"""Per-part tracking state machine: the estimator initialises and recovers, flow + Kalman filter propagate.
+
+Every part has a status on every frame:
+
+* ``init``: not seen yet (no usable box so far);
+* ``keyframe``: the estimator ran this frame and its pose was taken (fused into the filter);
+* ``tracking``: a flow measurement (LK + PnP) was accepted by the filter;
+* ``predicted``: the filter extrapolated (no acceptable measurement this frame);
+* ``lost``: no pose (no box and nothing to track, the part left the image, or recovery failed).
+
+The estimator runs for a part when it has a box and no track, and for a tracked part on the keyframe
+cadence, after ``max_predicted`` frames without a measurement, when the filter's gate locks out
+(``PoseKalman.lost``) or when a detection box disagrees with the part's projected box. A tracked part
+hands its pose to the estimator as a prior, so a keyframe never replaces a pose that explains the image
+better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
+appearance is enough. All parts needing the estimator in a frame share one batched call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from surftrack.pose import PoseEstimator
+from surftrack.track.config import TrackConfig
+from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, project, track_points,
+                                  visible_points)
+from surftrack.track.kalman import PoseKalman
+
+Box = tuple[float, float, float, float]
+STATUSES = ("init", "keyframe", "tracking", "predicted", "lost")
+
+
+@dataclass(frozen=True)
+class PartSpec:
+    """A part to track: ``track_id`` (det.json part id), the model's ``obj_id``, names, and the mesh."""
+
+    track_id: int
+    obj_id: int
+    instrument: str
+    instance: int
+    part: str
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def name(self) -> str:
+        """Topic-safe unique name ``<instrument>.<instance>.<part>``."""
+        return f"{self.instrument}.{self.instance}.{self.part}"
+
+
+@dataclass
+class PartState:
+    """One part on one frame. ``R``, ``t`` (mm, model-to-camera) are None when there is no pose.
+    ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: diagnostics (points, inliers,
+    RMS px, Mahalanobis d2, estimator score, why the estimator ran)."""
+
+    spec: PartSpec
+    status: str
+    confidence: float
+    R: np.ndarray | None
+    t: np.ndarray | None
+    box: Box | None
+    info: dict = field(default_factory=dict)
+
+
+def box_iou(a: Box, b: Box) -> float:
+    """Intersection over union of two (x, y, w, h) boxes."""
+    ax1, ay1, bx1, by1 = a[0] + a[2], a[1] + a[3], b[0] + b[2], b[1] + b[3]
+    iw, ih = max(0.0, min(ax1, bx1) - max(a[0], b[0])), max(0.0, min(ay1, by1) - max(a[1], b[1]))
+    inter = iw * ih
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray,
+                  size: tuple[int, int]) -> tuple[Box | None, float]:
+    """(box of the projected vertices clipped to the image (W, H), fraction of the unclipped box area
+    inside the image). (None, 0) when the part is behind the camera or entirely outside."""
+    uv, z = project(K, R, t, vertices)
+    front = z > 1e-3
+    if front.sum() < 3:
+        return None, 0.0
+    uv = uv[front]
+    x0, y0 = uv.min(0)
+    x1, y1 = uv.max(0) + 1.0  # pixel-edge box around pixel centres
+    W, H = size
+    area = (x1 - x0) * (y1 - y0)
+    cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, float(W)), min(y1, float(H))
+    if cx1 <= cx0 or cy1 <= cy0 or area <= 0:
+        return None, 0.0
+    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
+
+
+class _Track:
+    """Mutable per-part state."""
+
+    def __init__(self, spec: PartSpec, cfg: TrackConfig):
+        self.spec, self.cfg = spec, cfg
+        self.kf = PoseKalman(cfg.kalman)
+        self.status = "init"
+        self.confidence = 0.0
+        self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
+        self.n_points_fresh = 0
+        self.since_keyframe = 0
+        self.since_refresh = 0
+        self.since_meas = 0
+        self.seeded = False
+        self.info: dict = {}
+        rng = np.random.default_rng(spec.obj_id)
+        v = spec.vertices
+        self.box_vertices = v if len(v) <= 600 else v[rng.choice(len(v), 600, replace=False)]
+
+    @property
+    def has_pose(self) -> bool:
+        return self.status in ("keyframe", "tracking", "predicted")
+
+    def drop(self) -> None:
+        self.kf = PoseKalman(self.cfg.kalman)
+        self.status, self.confidence = "lost", 0.0
+        self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
+
+
+class Tracker:
+    """Tracks the parts ``specs`` through a video, one :meth:`step` per frame.
+
+    ``estimator``: a :class:`PoseEstimator` whose model knows every spec's ``obj_id``. ``K``: the
+    intrinsics (undistorted frames), ``image_size``: (W, H).
+    """
+
+    def __init__(self, estimator: PoseEstimator, K: np.ndarray, image_size: tuple[int, int],
+                 specs: Sequence[PartSpec], cfg: TrackConfig | None = None):
+        self.estimator, self.cfg = estimator, cfg or TrackConfig()
+        self.K = np.asarray(K, np.float64)
+        self.size = (int(image_size[0]), int(image_size[1]))
+        self.tracks = [_Track(s, self.cfg) for s in specs]
+        self.samples: dict[str, SurfaceSamples] = {}
+        import trimesh
+
+        for s in specs:
+            mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
+            self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
+        self.prev_gray: np.ndarray | None = None
+        self.frames = 0
+        self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
+        self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
+
+    # ------------------------------------------------------------------ helpers
+    def _pick_box(self, tr: _Track, boxes: Sequence[tuple[Box, float]], pbox: Box | None) -> Box | None:
+        cands = [(b, s) for b, s in boxes if s >= self.cfg.min_box_score]
+        if not cands:
+            return None
+        if pbox is not None:
+            best = max(cands, key=lambda bs: (box_iou(bs[0], pbox), bs[1]))
+            if box_iou(best[0], pbox) > 0.0:
+                return best[0]
+        return max(cands, key=lambda bs: bs[1])[0]
+
+    def _instrument_poses(self, tr: _Track) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        key = (tr.spec.instrument, tr.spec.instance)
+        return {o.spec.name: o.kf.pose for o in self.tracks
+                if (o.spec.instrument, o.spec.instance) == key and o.has_pose}
+
+    def _refresh(self, tr: _Track, gray: np.ndarray) -> None:
+        tr.points = visible_points(gray, self.K, self.samples, self._instrument_poses(tr), tr.spec.name,
+                                   max_points=self.cfg.max_points)
+        tr.n_points_fresh = len(tr.points)
+        tr.since_refresh = 0
+
+    def set_pose(self, track_id: int, R: np.ndarray, t: np.ndarray, time_s: float) -> None:
+        """(Re-)initialise a part from a pose known from elsewhere (e.g. a human annotation) at
+        ``time_s``, the time of the frame about to be stepped or of the last one; flow points are picked
+        on the next :meth:`step`'s frame."""
+        tr = next((x for x in self.tracks if x.spec.track_id == track_id), None)
+        if tr is None:
+            raise KeyError(f"no part with track id {track_id}")
+        tr.kf = PoseKalman(self.cfg.kalman)
+        tr.kf.init(np.asarray(R, np.float64), np.asarray(t, np.float64), time_s - 1e-6, self._est_cov)
+        tr.status, tr.confidence = "keyframe", 1.0
+        tr.since_keyframe = tr.since_meas = 0
+        tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
+        tr.n_points_fresh = 0
+        tr.seeded = True
+
+    # ------------------------------------------------------------------ the frame step
+    def step(self, frame_rgb: np.ndarray, time_s: float,
+             boxes: Mapping[int, Sequence[tuple[Box, float]]] | None = None) -> list[PartState]:
+        """Advance to the frame ``frame_rgb`` (H, W, 3 uint8, undistorted) at ``time_s`` seconds;
+        ``boxes`` maps track id -> [(box, score), ...] detected in this frame (missing = none)."""
+        cfg, K = self.cfg, self.K
+        boxes = boxes or {}
+        gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
+        # 1. propagate tracked parts: predict, flow, PnP, gated update
+        for tr in self.tracks:
+            tr.info = {}
+            if not tr.has_pose:
+                continue
+            tr.kf.predict(time_s)
+            if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
+                tr.seeded = False
+                tr.info["source"] = "set_pose"
+                continue
+            tr.since_keyframe += 1
+            tr.since_refresh += 1
+            meas = None
+            if self.prev_gray is not None and len(tr.points):
+                tr.points = track_points(self.prev_gray, gray, tr.points)
+                R0, t0 = tr.kf.pose
+                meas = pnp_measurement(tr.points, K, R0, t0, cfg.inlier_px, cfg.min_points)
+            tr.info["points"] = len(tr.points)
+            accepted = False
+            if meas is not None:
+                tr.info.update(inliers=int(meas.inliers.sum()), inlier_ratio=meas.inlier_ratio, rms_px=meas.rms_px)
+                tr.points = tr.points.subset(meas.inliers)
+                if meas.inlier_ratio >= cfg.min_inlier_ratio and meas.rms_px <= cfg.max_rms_px:
+                    accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor)
+                    tr.info["d2"] = tr.kf.last_d2
+            if accepted:
+                tr.status, tr.since_meas = "tracking", 0
+                tr.confidence = float(meas.inlier_ratio * np.exp(-meas.rms_px / 2.0)
+                                      * min(1.0, meas.inliers.sum() / 20.0))
+            else:
+                tr.status, tr.since_meas = "predicted", tr.since_meas + 1
+                tr.confidence *= 0.7
+        # 2. decide who needs the estimator
+        requests: list[tuple[_Track, Box, tuple | None, str]] = []
+        out_boxes: dict[int, Box | None] = {}
+        for tr in self.tracks:
+            sid = tr.spec.track_id
+            pbox = None
+            if tr.has_pose:
+                R, t = tr.kf.pose
+                pbox, inside = projected_box(K, R, t, tr.box_vertices, self.size)
+                if pbox is None or inside < cfg.min_visible:
+                    tr.drop()
+                    tr.info["why_lost"] = "left the image"
+                    pbox = None
+            det = self._pick_box(tr, boxes.get(sid, ()), pbox)
+            out_boxes[sid] = det if det is not None else pbox
+            if tr.has_pose:
+                why = None
+                if det is not None and box_iou(det, pbox) < cfg.min_iou:
+                    why = "box disagreement"
+                elif tr.kf.lost:
+                    why = "gate lockout"
+                elif tr.since_meas >= cfg.max_predicted:
+                    why = "no flow measurement"
+                elif tr.since_keyframe >= cfg.keyframe_every:
+                    why = "cadence"
+                if why is not None:
+                    requests.append((tr, det if det is not None else pbox, tr.kf.pose, why))
+            elif det is not None:
+                requests.append((tr, det, None, "init" if tr.status == "init" else "reappearance"))
+        # 3. one batched estimator call
+        if requests:
+            results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
+                                              priors=[p for _, _, p, _ in requests])
+            for (tr, box, prior, why), res in zip(requests, results):
+                tr.info.update(estimator=why, score=float(res.score), est_inliers=int(res.n_inliers),
+                               prior_won=bool(res.counts.get("prior_won", 0)))
+                good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+                conf = float(1.0 - np.exp(-max(res.score, 0.0)))
+                if tr.has_pose and good:
+                    if not tr.kf.update(res.R, res.t, self._est_cov):
+                        tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                    tr.status, tr.confidence = "keyframe", conf
+                elif good:
+                    tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                    tr.status, tr.confidence = "keyframe", conf
+                elif tr.has_pose and why == "cadence":
+                    pass  # the estimator failed on a healthy track: keep tracking
+                else:
+                    tr.drop()
+                    tr.info["why_lost"] = "estimator failed"
+                if tr.has_pose:
+                    tr.since_keyframe, tr.since_meas = 0, 0
+        # 4. refresh flow points where needed (after all poses of the frame are settled)
+        for tr in self.tracks:
+            if not tr.has_pose:
+                continue
+            stale = (tr.status == "keyframe" or tr.since_refresh >= cfg.refresh_every
+                     or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
+            if stale:
+                self._refresh(tr, gray)
+        self.prev_gray = gray
+        self.frames += 1
+        states = []
+        for tr in self.tracks:
+            if tr.has_pose:
+                R, t = tr.kf.pose
+                states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
+                                        out_boxes.get(tr.spec.track_id), dict(tr.info)))
+            else:
+                states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
+                                        dict(tr.info)))
+        return states

@@ -1,0 +1,129 @@
+"""The tracker on a real synthetic clip: flow + PnP against ground truth, the state machine, and the main
+command end to end (video through PyAV, MCAP read back with the mcap reader)."""
+
+import json
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from surftrack.cli import main
+from surftrack.synth.video import read_video_frames
+from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, projected_box
+from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
+from surftrack.track.flow import SurfaceSamples, pnp_measurement, pose_distance, track_points, visible_points
+
+
+def _frames(clip):
+    return [f for _, f in read_video_frames(clip / "video.mp4")]
+
+
+def _K(clip):
+    return np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
+
+
+def test_flow_and_pnp_follow_the_ground_truth_motion(clip, lnd_parts):
+    """From the true pose at frame i, LK + PnP lands near the true pose at frame i + 1 (the wrist: a
+    textured, well-shaped part)."""
+    import cv2
+
+    from surftrack.instruments import load_instrument
+
+    lnd = load_instrument("lnd")
+    gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
+    gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in _frames(clip)]
+    samples = {p: SurfaceSamples.of_mesh(lnd.parts[p].mesh, 12000, seed=1) for p in lnd_parts}
+    errs = []
+    for i in range(len(gray) - 1):
+        if gt.pose(i, lnd_parts["wrist"])[2] < 150 or gt.pose(i + 1, lnd_parts["wrist"])[2] < 150:
+            continue
+        poses = {p: gt.pose(i, tid)[:2] for p, tid in lnd_parts.items()}
+        pts = visible_points(gray[i], K, samples, poses, "wrist")
+        assert len(pts) >= 6
+        # the picked pixels show their model points at the true pose
+        uv = (pts.xyz @ poses["wrist"][0].T + poses["wrist"][1]) @ K.T
+        assert np.abs(uv[:, :2] / uv[:, 2:] - pts.uv).max() < 0.5
+        m = pnp_measurement(track_points(gray[i], gray[i + 1], pts), K, *poses["wrist"])
+        if m is not None:
+            errs.append(pose_distance(m.R, m.t, *gt.pose(i + 1, lnd_parts["wrist"])[:2]))
+    errs = np.array(errs)
+    assert len(errs) >= 4
+    re_med, te_med = np.median(errs, axis=0)
+    assert re_med < 3.0 and te_med < 2.0, f"flow step errors: RE median {re_med:.2f} deg, TE median {te_med:.2f} mm"
+
+
+def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny_ckpt):
+    """Seeded with the true poses and never asked to re-estimate, flow + Kalman keep the wrist near the
+    ground truth while it is visible."""
+    from surftrack.model import load_checkpoint
+    from surftrack.pose import PoseEstimator
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    specs = [PartSpec(tid, model.parts[i].obj_id, "large_needle_driver", 0, p, model.parts[i].vertices,
+                      model.parts[i].faces)
+             for i, (p, tid) in enumerate(sorted(lnd_parts.items(), key=lambda kv: kv[1]))]
+    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000)
+    gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
+    tracker = Tracker(PoseEstimator(model, "fast", device="cpu", crop_size=64), K, (320, 256), specs, cfg)
+    score = TrackScore(gt)
+    for tid in lnd_parts.values():
+        tracker.set_pose(tid, *gt.pose(0, tid)[:2], 0.0)
+    statuses = []
+    for i, f in enumerate(_frames(clip)[:8]):
+        states = tracker.step(f, i / 10.0, None)
+        statuses.append({s.spec.part: s.status for s in states})
+        score.add_frame(i, i / 10.0, states)
+    assert statuses[0]["wrist"] == "keyframe"
+    assert sum(s["wrist"] == "tracking" for s in statuses[1:]) >= 4, statuses
+    w = score.summary()["large_needle_driver.0.wrist"]
+    assert w["te_median_mm"] < 3.0 and w["re_median_deg"] < 8.0, w
+
+
+def test_box_helpers():
+    assert box_iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
+    assert box_iou((0, 0, 10, 10), (20, 20, 5, 5)) == 0.0
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    box, inside = projected_box(K, np.eye(3), np.array([0, 0, 20.0]), cube, (100, 100))
+    assert inside == 1.0 and box[0] == pytest.approx(50 - 100 / 19) and box[2] == pytest.approx(200 / 19 + 1)
+    box, inside = projected_box(K, np.eye(3), np.array([-52.0, 0, 20.0]), cube, (100, 100))
+    assert box is None and inside == 0.0
+
+
+def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
+    """`surftrack VIDEO --boxes ...`: every frame of every tracked part gets a status, poses go to the
+    MCAP in metres on the frame's time, and the unknown second tool is reported, not tracked."""
+    out = tmp_path / "run.mcap"
+    cfg = tmp_path / "accept_all.yaml"  # the untrained model's poses score low: accept them to exercise every path
+    cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\n")
+    rc = main([str(clip / "video.mp4"), "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"),
+               "--model", str(tiny_ckpt), "-o", str(out), "--images", "--quiet", "--keyframe-every", "5",
+               "--config", str(cfg)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "not in the model" in captured.out
+    n_frames = len(_frames(clip))
+    statuses, times, poses, topics = {}, {}, 0, set()
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        for schema, channel, message in reader.iter_messages():
+            topics.add(channel.topic)
+            msg = json.loads(message.data)
+            assert message.log_time == message.publish_time
+            if channel.topic.endswith("/status"):
+                statuses.setdefault(msg["part"], []).append(msg["status"])
+                times.setdefault(msg["part"], []).append(message.log_time)
+                assert 0.0 <= msg["confidence"] <= 1.0
+            elif channel.topic.endswith("/pose"):
+                poses += 1
+                assert abs(msg["pose"]["position"]["z"]) < 1.0  # metres
+    assert set(statuses) == {f"large_needle_driver.0.{p}" for p in ("shaft", "wrist", "jaw_left", "jaw_right")}
+    for part, st in statuses.items():
+        assert len(st) == n_frames and set(st) <= {"init", "keyframe", "tracking", "predicted", "lost"}
+        assert times[part] == sorted(times[part])
+        assert times[part][1] - times[part][0] == 100_000_000  # 10 fps: frame times in ns
+    n_posed = sum(s in ("keyframe", "tracking", "predicted") for st in statuses.values() for s in st)
+    assert poses == n_posed > n_frames
+    assert {"/tf", "/camera/calibration", "/camera/image", "/camera/annotations", "/parts/meshes"} <= topics
+    assert "video.mp4" in meta["surftrack"]["video"] and "tiny.pt" in meta["surftrack"]["model"]

@@ -1,0 +1,150 @@
+"""Every bad input of the main command: one line on stderr naming the file and the problem, exit code 2,
+no traceback, and no output left half-written."""
+
+import json
+import shutil
+
+import pytest
+
+from surftrack.cli import main
+
+
+def _run(capsys, args):
+    rc = main(args)
+    err = capsys.readouterr().err
+    return rc, err
+
+
+def _base(clip, tiny_ckpt, tmp_path, **over):
+    a = {"video": str(clip / "video.mp4"), "--boxes": str(clip / "det.json"), "--camera": str(clip / "camera.json"),
+         "--model": str(tiny_ckpt), "-o": str(tmp_path / "out.mcap")}
+    a.update(over)
+    args = [a.pop("video")]
+    for k, v in a.items():
+        args += [k, v]
+    return args + ["--quiet"]
+
+
+def _check(capsys, args, *needles):
+    rc, err = _run(capsys, args)
+    assert rc == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("surftrack: error: "), err
+    for n in needles:
+        assert n in lines[0], lines[0]
+    return lines[0]
+
+
+def _det(clip):
+    return json.loads((clip / "det.json").read_text())
+
+
+def test_missing_corrupt_and_truncated_video(clip, tiny_ckpt, tmp_path, capsys):
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, video=str(tmp_path / "nope.mp4")), "nope.mp4", "no such video")
+    bad = tmp_path / "corrupt.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 40)
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, video=str(bad)), "corrupt.mp4")
+    data = (clip / "video.mp4").read_bytes()
+    cut = tmp_path / "truncated.mp4"
+    cut.write_bytes(data[: len(data) // 2])
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, video=str(cut)), "truncated.mp4")
+
+
+def test_malformed_and_mismatched_detections(clip, tiny_ckpt, tmp_path, capsys):
+    p = tmp_path / "det.json"
+    p.write_text("{not json")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "invalid JSON")
+    p.write_text(json.dumps({"hello": 1}))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "not a detection file")
+    d = _det(clip)
+    d["image_size"] = [640, 480]
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "640x480", "320x256")
+    d = _det(clip)
+    for f in d["frames"]:  # boxes made for a video at half the frame rate
+        f["time"] = 2 * f["time"]
+    p.write_text(json.dumps(d))
+    out = tmp_path / "partial.mcap"
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p), "-o": str(out)}), "det.json", "frame 1")
+    from mcap.reader import make_reader
+
+    with open(out, "rb") as f:  # what was written before the error is a complete, readable file
+        assert make_reader(f).get_summary() is not None
+
+
+def test_bad_boxes(clip, tiny_ckpt, tmp_path, capsys):
+    p = tmp_path / "det.json"
+    d = _det(clip)
+    frame = next(f for f in d["frames"] if f["detections"])
+    frame["detections"][0]["bbox"] = [300.0, 10.0, 50.0, 20.0]  # extends past x = 320
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "outside")
+    d = _det(clip)
+    frame = next(f for f in d["frames"] if f["detections"])
+    frame["detections"][0]["part_id"] = 99
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "99")
+    d = _det(clip)
+    lnd_pid = next(k for k, v in d["parts"].items() if v["instrument"] == "large_needle_driver")
+    d["parts"][lnd_pid]["part"] = "jawz"
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "jawz")
+    d = _det(clip)
+    for v in d["parts"].values():
+        v["instrument"] = "harmonic_scalpel"
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "none of its parts")
+    d = _det(clip)
+    for f in d["frames"]:
+        f["detections"] = []
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "no boxes")
+
+
+def test_wrong_intrinsics(clip, tiny_ckpt, tmp_path, capsys):
+    cam = json.loads((clip / "camera.json").read_text())
+    p = tmp_path / "camera.json"
+    p.write_text(json.dumps(dict(cam, width=640, height=512)))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "640x512")
+    K = [row[:] for row in cam["K"]]
+    K[0][2] = 900.0
+    p.write_text(json.dumps(dict(cam, K=K)))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "principal point")
+    K = [row[:] for row in cam["K"]]
+    K[0][0] = -5.0
+    p.write_text(json.dumps(dict(cam, K=K)))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "fx")
+    p.write_text(json.dumps(dict(cam, K=[[1, 2], [3, 4]])))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "3x3")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(tmp_path / "none.json")}), "none.json")
+
+
+def test_unwritable_output_and_bad_options(clip, tiny_ckpt, tmp_path, capsys):
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"-o": str(tmp_path / "missing_dir" / "x.mcap")}), "x.mcap")
+    d = tmp_path / "a_dir.mcap"
+    d.mkdir()
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"-o": str(d)}), "a_dir.mcap")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--model": str(tmp_path / "m.pt")}), "m.pt")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--start", "2", "--end", "1"], "--end")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--keyframe-every", "0"], "--keyframe-every")
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text("keyframe_evry: 3\n")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", str(cfg)], "t.yaml", "keyframe_evry")
+
+
+def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp_path, capsys):
+    vids, boxes = tmp_path / "videos", tmp_path / "boxes"
+    vids.mkdir()
+    boxes.mkdir()
+    for name in ("a", "b"):
+        shutil.copy(clip / "video.mp4", vids / f"{name}.mp4")
+        shutil.copy(clip / "det.json", boxes / f"{name}.json")
+    shutil.copy(clip / "camera.json", vids / "camera.json")
+    out = tmp_path / "tracks"
+    rc = main([str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet",
+               "--end", "0.25"])
+    assert rc == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["a.mcap", "b.mcap"]
+    (boxes / "b.json").unlink()
+    _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"], "b.json")
