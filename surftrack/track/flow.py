@@ -95,13 +95,14 @@ def visible_points(gray: np.ndarray, K: np.ndarray, samples: dict[str, SurfaceSa
     if not np.any(pid == target):
         return TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
     cell = (uv[:, 1] // cell_px).astype(np.int64) * gw + (uv[:, 0] // cell_px).astype(np.int64)
+    # nearest sample per cell: sort by (cell, depth), the first of each cell run
+    order = np.lexsort((z, cell))
+    head = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
     zmin = np.full(gh * gw, np.inf)
-    np.minimum.at(zmin, cell, z)
+    zmin[cell[head]] = z[head]
     front = z <= zmin[cell] + depth_tol_mm
-    # owner of each cell: the part of its nearest sample (-1 = empty)
-    owner = np.full(gh * gw, -1)
-    order = np.argsort(-z)  # nearest last, so it wins the assignment
-    owner[cell[order]] = pid[order]
+    owner = np.full(gh * gw, -1)  # the part of each cell's nearest sample (-1 = empty)
+    owner[cell[head]] = pid[head]
     owner = owner.reshape(gh, gw)
     # Interior cells: no neighbour owned by another part and at most 2 empty neighbours (a sampling hole
     # inside the part leaves isolated empty cells; the background borders a cell with 3 or more).
@@ -118,8 +119,11 @@ def visible_points(gray: np.ndarray, K: np.ndarray, samples: dict[str, SurfaceSa
     if not np.any(keep):
         return TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
     uv_k, idx_k = uv[keep], idx[keep]
-    resp = cv2.cornerMinEigenVal(gray, 5, 3)
-    q = resp[np.round(uv_k[:, 1]).astype(int), np.round(uv_k[:, 0]).astype(int)]
+    px = np.round(uv_k).astype(int)
+    x0, y0 = np.maximum(px.min(0) - 4, 0)
+    x1, y1 = px.max(0) + 5
+    resp = cv2.cornerMinEigenVal(np.ascontiguousarray(gray[y0:y1, x0:x1]), 5, 3)  # only around the part
+    q = resp[px[:, 1] - y0, px[:, 0] - x0]
     best_q = float(q.max())
     good = q >= min_quality * max(best_q, 1e-12)
     uv_k, idx_k, q = uv_k[good], idx_k[good], q[good]
@@ -136,18 +140,24 @@ def visible_points(gray: np.ndarray, K: np.ndarray, samples: dict[str, SurfaceSa
     return TrackPoints(uv_k[chosen].astype(np.float32).astype(np.float64), samples[part].points[idx_k[chosen]])
 
 
-def track_points(prev_gray: np.ndarray, gray: np.ndarray, pts: TrackPoints,
-                 max_fb_px: float = 1.0) -> TrackPoints:
+def track_points(prev_gray: np.ndarray, gray: np.ndarray, pts: TrackPoints, max_fb_px: float = 1.0,
+                 margin_px: int = 64) -> TrackPoints:
     """``pts`` followed from ``prev_gray`` to ``gray`` by pyramidal LK; points lost, leaving the image or
-    failing the forward-backward check (round trip error > ``max_fb_px``) are dropped."""
+    failing the forward-backward check (round trip error > ``max_fb_px``) are dropped. LK runs on the
+    region around the points grown by ``margin_px`` (motion up to about that far is followed), so its
+    pyramids cost what the parts cover, not the whole frame."""
     if len(pts) == 0:
         return pts
-    p0 = pts.uv.astype(np.float32).reshape(-1, 1, 2)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, None, **LK_PARAMS)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, None, **LK_PARAMS)
-    fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
     H, W = gray.shape
-    uv = p1.reshape(-1, 2).astype(np.float64)
+    x0, y0 = np.maximum(np.floor(pts.uv.min(0)).astype(int) - margin_px, 0)
+    x1, y1 = np.minimum(np.ceil(pts.uv.max(0)).astype(int) + margin_px + 1, (W, H))
+    a, b = prev_gray[y0:y1, x0:x1], gray[y0:y1, x0:x1]
+    off = np.array([x0, y0], np.float32)
+    p0 = (pts.uv.astype(np.float32) - off).reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None, **LK_PARAMS)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, None, **LK_PARAMS)
+    fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+    uv = p1.reshape(-1, 2).astype(np.float64) + off
     ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < max_fb_px)
     ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
     return TrackPoints(uv[ok], pts.xyz[ok])

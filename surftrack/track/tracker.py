@@ -18,6 +18,7 @@ appearance is enough. All parts needing the estimator in a frame share one batch
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -193,11 +194,27 @@ class Tracker:
         cfg, K = self.cfg, self.K
         boxes = boxes or {}
         gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
-        # 1. propagate tracked parts: predict, flow, PnP, gated update
+        # 1. propagate tracked parts: predict, flow, PnP, gated update. LK runs once for the points of
+        # all parts (one image pyramid per frame), its time shared out by point count.
+        moving = [tr for tr in self.tracks if tr.has_pose and not tr.seeded and len(tr.points)]
+        lk_ms = {}
+        if self.prev_gray is not None and moving:
+            t_lk = time.perf_counter()
+            merged = TrackPoints(np.concatenate([tr.points.uv for tr in moving]),
+                                 np.concatenate([tr.points.xyz for tr in moving]))
+            owner = np.concatenate([np.full(len(tr.points), k) for k, tr in enumerate(moving)])
+            merged.xyz = np.c_[merged.xyz, owner]  # carry the owner through the filtering
+            followed = track_points(self.prev_gray, gray, merged)
+            total = 1e3 * (time.perf_counter() - t_lk)
+            for k, tr in enumerate(moving):
+                sel = followed.xyz[:, 3] == k
+                tr.points = TrackPoints(followed.uv[sel], followed.xyz[sel, :3])
+                lk_ms[id(tr)] = total * len(tr.points) / max(len(followed), 1)
         for tr in self.tracks:
             tr.info = {}
             if not tr.has_pose:
                 continue
+            t_flow = time.perf_counter()
             tr.kf.predict(time_s)
             if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
                 tr.seeded = False
@@ -207,7 +224,6 @@ class Tracker:
             tr.since_refresh += 1
             meas = None
             if self.prev_gray is not None and len(tr.points):
-                tr.points = track_points(self.prev_gray, gray, tr.points)
                 R0, t0 = tr.kf.pose
                 meas = pnp_measurement(tr.points, K, R0, t0, cfg.inlier_px, cfg.min_points)
             tr.info["points"] = len(tr.points)
@@ -225,6 +241,7 @@ class Tracker:
             else:
                 tr.status, tr.since_meas = "predicted", tr.since_meas + 1
                 tr.confidence *= 0.7
+            tr.info["flow_ms"] = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
         # 2. decide who needs the estimator
         requests: list[tuple[_Track, Box, tuple | None, str]] = []
         out_boxes: dict[int, Box | None] = {}
@@ -256,10 +273,12 @@ class Tracker:
                 requests.append((tr, det, None, "init" if tr.status == "init" else "reappearance"))
         # 3. one batched estimator call
         if requests:
+            t_est = time.perf_counter()
             results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
                                               priors=[p for _, _, p, _ in requests])
+            est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
             for (tr, box, prior, why), res in zip(requests, results):
-                tr.info.update(estimator=why, score=float(res.score), est_inliers=int(res.n_inliers),
+                tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                                prior_won=bool(res.counts.get("prior_won", 0)))
                 good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
                 conf = float(1.0 - np.exp(-max(res.score, 0.0)))
@@ -284,7 +303,9 @@ class Tracker:
             stale = (tr.status == "keyframe" or tr.since_refresh >= cfg.refresh_every
                      or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
             if stale:
+                t_ref = time.perf_counter()
                 self._refresh(tr, gray)
+                tr.info["refresh_ms"] = 1e3 * (time.perf_counter() - t_ref)
         self.prev_gray = gray
         self.frames += 1
         states = []
