@@ -28,13 +28,18 @@ def _seed(text: str) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from surftrack.demo import run_demo
 
-    s = run_demo(Path(args.out), instrument=args.instrument, seed=args.seed)
-    print(f"surftrack demo: {s['instrument']} over procedural tissue, rendered in {s['render_ms']} ms "
-          f"({s['gl']['GL_RENDERER']})")
-    for pname, p in s["parts"].items():
-        print(f"  {pname:10s} t = {p['t_mm']} mm  visible {p['visible_px']} / {p['silhouette_px']} px")
-    print(f"wrote {s['rgb']}")
-    print(f"wrote {s['modalities']}")
+    s = run_demo(Path(args.out), seconds=args.seconds, fps=args.fps, seed=args.seed, model=args.model,
+                 progress=not args.quiet)
+    c, t = s["clip"], s["tracking"]
+    print(f"surftrack demo: a {c['seconds']:g} s synthetic clip at {c['fps']:g} fps (made in {c['made_in_s']} s; "
+          f"the needle driver is out of view in {c['frames_out_of_view']} frames and occluded in "
+          f"{c['frames_occluded']})")
+    for note in t["notes"]:
+        print(f"note: {note}")
+    print(f"tracked {t['frames']} frames at {t['fps']:.1f} frames/s ({t['track_ms_per_frame']:.0f} ms/frame in the "
+          f"tracker); accuracy against the ground truth:")
+    print((Path(args.out) / "summary.md").read_text().split("\n\n", 1)[1], end="")
+    print(f"wrote {', '.join(s['outputs'].values())}, {Path(args.out) / 'summary.json'} in {s['total_s']} s")
     return 0
 
 
@@ -172,10 +177,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="run the end-to-end demo on built-in data")
+    d = sub.add_parser("demo", help="make a synthetic clip, track it with the bundled model, score the tracks")
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    d.add_argument("--instrument", default="lnd", help="instrument name or alias (default: lnd)")
+    d.add_argument("--seconds", type=float, default=6.0, help="clip length (default: 6)")
+    d.add_argument("--fps", type=float, default=15.0, help="clip frame rate (default: 15)")
     d.add_argument("--seed", type=_seed, default=0)
+    d.add_argument("--model", help="checkpoint (default: the bundled model)")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=_cmd_demo)
     i = sub.add_parser("instruments", help="list instruments (parts, sizes) and export BOP models")
     i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all built-in)")

@@ -1,7 +1,11 @@
-"""``surftrack demo``: the end-to-end job on built-in data.
+"""``surftrack demo``: the main job end to end on built-in data, with no download and no GPU.
 
-For now (renderer stage): pose an instrument under a remote-centre-of-motion constraint over procedural
-tissue, render every modality, and write the RGB frame and a modality panel as PNGs.
+1. Make a short synthetic clip (``surftrack synth-clip``): the Large Needle Driver moving under its trocar,
+   crossed by a second tool (occlusion), leaving the view and coming back; with its det.json and ground
+   truth.
+2. Track it with the bundled default model (``surftrack VIDEO --boxes det.json``): MCAP for Foxglove
+   (with JPEG frames and annotations), an overlay video and TUM trajectories.
+3. Score the tracks against the ground truth (per part ADD-10, RE, TE, jitter) and write a summary.
 """
 
 from __future__ import annotations
@@ -10,58 +14,41 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-from PIL import Image
-
-from surftrack.geometry import PinholeCamera, quat_xyzw_from_matrix, rotation_about, se3
-from surftrack.instruments import JointState, load_instrument, rcm_base_pose
-from surftrack.render import Light, Renderer, add_instrument, endoscope_light, gl_info
-from surftrack.render.visualize import modality_panel
-from surftrack.synth import procedural_tissue
+from surftrack.annotate import AnnotateOptions, annotate_video
+from surftrack.synth.clip import ClipConfig, make_clip
+from surftrack.track import load_track_config
+from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
 
 
-def run_demo(out_dir: Path, instrument: str = "lnd", seed: int = 0) -> dict:
-    """Render the demo scene into ``out_dir``; returns a summary (paths, part poses, timings)."""
-    t0 = time.perf_counter()
+def run_demo(out_dir: Path, seconds: float = 6.0, fps: float = 15.0, seed: int = 0, model: str | None = None,
+             progress: bool = True) -> dict:
+    """Make the clip, track it, score it; everything goes to ``out_dir``. Returns the summary (also
+    written to ``summary.json`` and, as a table, ``summary.md``)."""
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    inst = load_instrument(instrument)
-    camera = PinholeCamera.from_fov(640, 512, hfov_deg=70.0)
-    tissue = procedural_tissue(rng)
-    tissue_pose = se3(rotation_about([1.0, 0.3, 0.0], np.radians(18.0)), [0.0, 0.0, 105.0])
-    trocar = np.array([-75.0, -60.0, 15.0])            # outside the view, up and to the left
-    pitch_point = np.array([-6.0, -4.0, 62.0])         # wrist, ~40 mm above the tissue
-    base = rcm_base_pose(trocar, pitch_point)
-    q = JointState.from_degrees(roll=20.0, pitch=25.0, yaw=-30.0, opening=35.0)
-    part_poses = inst.forward(base, q)
-
-    renderer = Renderer(camera.width, camera.height)
-    tissue_id = tissue.add_to(renderer)
-    handles = add_instrument(renderer, inst)
-    poses = {tissue_id: tissue_pose, **handles.poses(part_poses)}
-    lights = [endoscope_light(0.9), Light(position=(25.0, -10.0, 0.0), direction=(-0.2, 0.1, 1.0), intensity=0.35)]
-    t1 = time.perf_counter()
-    result = renderer.render(camera, poses, lights)
-    t_render = time.perf_counter() - t1
-
-    rgb_path, panel_path = out_dir / "demo_rgb.png", out_dir / "demo_modalities.png"
-    Image.fromarray(result.rgb).save(rgb_path)
-    Image.fromarray(modality_panel(result)).save(panel_path)
-    parts = {}
-    for pname, iid in handles.parts.items():
-        T = part_poses[pname]
-        parts[pname] = {
-            "t_mm": np.round(T[:3, 3], 3).tolist(),
-            "q_xyzw": np.round(quat_xyzw_from_matrix(T[:3, :3]), 6).tolist(),
-            "visible_px": int((result.instance == iid).sum()),
-            "silhouette_px": int(result.amodal[iid].sum()),
-        }
+    t0 = time.perf_counter()
+    clip_dir = out_dir / "clip"
+    clip = make_clip(clip_dir, "lnd", ClipConfig(seconds=seconds, fps=fps), seed=seed, progress=progress)
+    t_clip = time.perf_counter() - t0
+    score = TrackScore(ClipGroundTruth(clip_dir / "gt.json"))
+    opts = AnnotateOptions(model=model, camera=clip_dir / "camera.json", out=out_dir / "tracks.mcap",
+                           config=load_track_config(), overlay=out_dir / "overlay.mp4",
+                           export_tum=out_dir / "tum", mcap_images=True, progress=progress)
+    run = annotate_video(clip_dir / "video.mp4", clip_dir / "det.json", opts,
+                         on_frame=lambda i, t, states: score.add_frame(i, t, states))
+    accuracy = score.summary()
     summary = {
-        "instrument": inst.name, "rgb": str(rgb_path), "modalities": str(panel_path),
-        "camera": camera.to_dict(), "joints_deg": {k: float(np.degrees(v)) for k, v in q.as_dict().items()},
-        "trocar_mm": trocar.tolist(), "parts": parts, "render_ms": round(1000 * t_render, 1),
-        "total_s": round(time.perf_counter() - t0, 2), "gl": gl_info(),
+        "clip": {"folder": str(clip_dir), "seconds": seconds, "fps": fps, "seed": seed,
+                 "frames_out_of_view": clip.get("main_out_of_view_frames"), "frames_occluded": clip.get("occluded_frames"),
+                 "made_in_s": round(t_clip, 1)},
+        "tracking": {k: run[k] for k in ("frames", "seconds", "fps", "track_ms_per_frame", "notes", "parts")},
+        "accuracy": accuracy,
+        "outputs": run["outputs"],
+        "total_s": round(time.perf_counter() - t0, 1),
     }
-    (out_dir / "demo.json").write_text(json.dumps(summary, indent=2))
-    renderer.release()
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    (out_dir / "summary.md").write_text(
+        f"Tracking {run['frames']} frames at {run['fps']:.1f} frames/s. Against the ground truth (ADD-10 with "
+        f"the SurgRIPE diameter; frames where the part is visible, a frame without a pose counts as a miss):\n\n"
+        + format_summary(accuracy))
     return summary
