@@ -132,3 +132,28 @@ def test_init_from_checkpoint(tiny_data, tmp_path):
     other = cfg.replace(model={"decoder_widths": [16, 16, 16, 16, 16]})
     with pytest.raises(CheckpointError, match="architecture"):
         train(other, tiny_data, tmp_path / "c.pt", progress=False, init=first)
+
+
+def test_int8_export_is_small_and_close(tmp_path):
+    from surftrack.instruments import load_instrument
+    from surftrack.model import save_checkpoint
+    from surftrack.model.config import ModelCfg, TrainConfig
+    from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
+
+    lnd = load_instrument("lnd")
+    parts = [PartInfo.from_part(i + 1, lnd.name, lnd.parts[n]) for i, n in enumerate(lnd.part_names)]
+    torch.manual_seed(0)
+    model = SurfSurg6D(parts, ModelCfg(decoder_widths=(32, 32, 16, 16, 16), siren_hidden=32)).eval()
+    cfg = TrainConfig.from_dict({"model": {"decoder_widths": [32, 32, 16, 16, 16], "siren_hidden": 32}})
+    full = save_checkpoint(tmp_path / "full.pt", model, cfg, step=1)
+    q8 = save_checkpoint(tmp_path / "q8.pt", model, cfg, step=1, int8=True)
+    assert q8.stat().st_size < 0.3 * full.stat().st_size
+    loaded, _, blob = load_checkpoint(q8)
+    assert blob["int8"] and all(k.startswith("net.") for k in blob["int8"])
+    x, idx = torch.rand(2, 3, 64, 64), torch.tensor([0, 3])
+    with torch.no_grad():
+        (ma, qa), (mb, qb) = model(x, idx), loaded(x, idx)
+    assert float((qa - qb).norm() / qa.norm()) < 0.02
+    pts = torch.rand(50, 3) - 0.5  # the SIREN fields are kept in fp16, not quantised
+    with torch.no_grad():
+        assert torch.allclose(model.keys(1, pts), loaded.keys(1, pts), atol=2e-2)
