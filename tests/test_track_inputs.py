@@ -148,3 +148,54 @@ def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp
     assert sorted(p.name for p in out.iterdir()) == ["a.mcap", "b.mcap"]
     (boxes / "b.json").unlink()
     _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"], "b.json")
+
+
+def test_coco_detections_are_accepted(clip, tiny_ckpt, tmp_path, capsys):
+    """The same boxes as a COCO file (categories named by instrument and part, frame numbers in the
+    image file names) track like det.json."""
+    d = _det(clip)
+    coco = {"images": [], "annotations": [], "categories": []}
+    for pid, p in d["parts"].items():
+        coco["categories"].append({"id": int(pid), "name": p["part"], "supercategory": p["instrument"]})
+    for f in d["frames"]:
+        coco["images"].append({"id": 1000 + f["index"], "file_name": f"frames/frame_{f['index']:06d}.png"})
+        for det in f["detections"]:
+            coco["annotations"].append({"id": len(coco["annotations"]), "image_id": 1000 + f["index"],
+                                        "category_id": det["part_id"], "bbox": det["bbox"], "score": det["score"]})
+    p = tmp_path / "coco.json"
+    p.write_text(json.dumps(coco))
+    out = tmp_path / "coco.mcap"
+    rc = main(_base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p), "-o": str(out)}) + ["--end", "0.35"])
+    assert rc == 0, capsys.readouterr().err
+    from mcap.reader import make_reader
+
+    with open(out, "rb") as f:
+        stats = make_reader(f).get_summary().statistics
+    assert stats.message_count > 0 and stats.message_end_time == 300_000_000  # frames 0..3 at 10 fps
+    del coco["annotations"][0]["bbox"]
+    p.write_text(json.dumps(coco))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "coco.json", "annotations[0]")
+
+
+def test_interrupted_run_leaves_complete_outputs(clip, tiny_ckpt, tmp_path):
+    """Ctrl-C in the middle of a run: the MCAP, overlay and TUM files written so far are complete."""
+    from mcap.reader import make_reader
+
+    from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.io.tum import read_tum
+    from surftrack.synth.video import read_video_frames
+
+    def stop(index, time_s, states):
+        if index == 4:
+            raise KeyboardInterrupt
+
+    opts = AnnotateOptions(model=tiny_ckpt, camera=clip / "camera.json", out=tmp_path / "x.mcap",
+                           overlay=tmp_path / "x.mp4", export_tum=tmp_path / "tum", progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        annotate_video(clip / "video.mp4", clip / "det.json", opts, on_frame=stop)
+    with open(tmp_path / "x.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_end_time == 400_000_000
+    assert len(list(read_video_frames(tmp_path / "x.mp4"))) == 5
+    for p in (tmp_path / "tum").glob("*.tum"):
+        assert len(read_tum(p)[0]) <= 5
