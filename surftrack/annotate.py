@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from surftrack import __version__
+from surftrack.instruments import JOINT_NAMES
 from surftrack.synth.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
@@ -35,7 +36,9 @@ STATUS_COLOURS = {"keyframe": (0.0, 0.9, 1.0, 1.0), "tracking": (0.1, 1.0, 0.2, 
 @dataclass
 class AnnotateOptions:
     """What to write and how to track. ``start``/``end``: seconds of video time (None = from the start /
-    to the end). ``mcap_images``: JPEG frames plus annotations in the MCAP (bigger files)."""
+    to the end). ``mcap_images``: JPEG frames plus annotations in the MCAP (bigger files). ``joints``:
+    fit each instrument's joint angles every frame (foxglove.JointStates in the MCAP; also CSV to
+    ``joints_csv``)."""
 
     model: str | Path | None = None
     camera: str | Path | None = None
@@ -46,6 +49,8 @@ class AnnotateOptions:
     end: float | None = None
     overlay: str | Path | None = None
     export_tum: str | Path | None = None
+    joints: bool = True
+    joints_csv: str | Path | None = None
     mcap_images: bool = False
     progress: bool = True
 
@@ -175,7 +180,12 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     conf_sum = {s.name: 0.0 for s in specs}
     timing = Counter()
     n_done, t_first, stopped = 0, None, None
-    overlay = tum = None
+    overlay = tum = joints_csv = None
+    fitters = {}
+    if opts.joints or opts.joints_csv is not None:
+        from surftrack.track.articulation import ArticulationTracker
+
+        fitters = {(s.instrument, s.instance): ArticulationTracker(s.instrument) for s in specs}
     from tqdm import tqdm
 
     writer = TrackWriter(out, meta)  # opened before heavy work: an unwritable path fails here
@@ -188,6 +198,10 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             from surftrack.io.tum import TumWriter
 
             tum = TumWriter(opts.export_tum)
+        if opts.joints_csv is not None:
+            from surftrack.io.joints_csv import JointCsvWriter
+
+            joints_csv = JointCsvWriter(opts.joints_csv)
         bar = tqdm(total=info.frames or None, unit="frame", desc=video.name, disable=not opts.progress)
         wall0 = time.perf_counter()
         try:
@@ -230,6 +244,17 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 if tum is not None:
                     for name, (R, t) in posed.items():
                         tum.add(name, t_s, R, t)
+                for (inst, instance), fitter in fitters.items():
+                    t0 = time.perf_counter()
+                    fit = fitter.update([s for s in states
+                                         if (s.spec.instrument, s.spec.instance) == (inst, instance)])
+                    timing["joints_s"] += time.perf_counter() - t0
+                    if fit is None:
+                        continue
+                    label = f"{inst}.{instance}"
+                    writer.joint_states(t_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
+                    if joints_csv is not None:
+                        joints_csv.add(t_s, label, fit)
                 if on_frame is not None:
                     on_frame(index, t_s, states)
                 n_done += 1
@@ -247,6 +272,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             overlay.close()
         if tum is not None:
             tum.close()
+        if joints_csv is not None:
+            joints_csv.close()
     if n_done == 0:
         raise InputError(f"{video}: no frame between --start and --end")
     outputs = {"mcap": str(out)}
@@ -254,8 +281,11 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         outputs["overlay"] = str(opts.overlay)
     if opts.export_tum is not None:
         outputs["tum"] = str(opts.export_tum)
+    if opts.joints_csv is not None:
+        outputs["joints_csv"] = str(opts.joints_csv)
     return {"video": str(video), "frames": n_done, "seconds": wall, "fps": n_done / max(wall, 1e-9),
-            "track_ms_per_frame": 1e3 * timing["track_s"] / n_done, "notes": notes, "stopped": stopped,
+            "track_ms_per_frame": 1e3 * timing["track_s"] / n_done,
+            "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes, "stopped": stopped,
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}
                       for name, c in counts.items()},
             "outputs": outputs}

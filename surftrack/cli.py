@@ -156,12 +156,14 @@ def _cmd_track(args: argparse.Namespace) -> int:
         if not torch.cuda.is_available():
             raise CLIError("--device cuda: no CUDA device is available (use --device cpu)")
     jobs = video_jobs(args.video, args.boxes, args.camera, args.out)
-    if len(jobs) > 1 and (args.overlay or args.export_tum):
-        raise CLIError("--overlay and --export-tum take one video; with a folder, run the videos one by one")
+    if len(jobs) > 1 and (args.overlay or args.export_tum or args.joints_csv):
+        raise CLIError("--overlay, --export-tum and --joints-csv take one video; with a folder, run the videos "
+                       "one by one")
     for video, boxes, camera, out in jobs:
         opts = AnnotateOptions(model=args.model, camera=camera, out=out, config=cfg, device=args.device,
                                start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
-                               mcap_images=args.images, progress=not args.quiet)
+                               mcap_images=args.images, progress=not args.quiet, joints=not args.no_joints,
+                               joints_csv=args.joints_csv)
         s = annotate_video(video, boxes, opts)
         for note in s["notes"]:
             print(f"note: {note}")
@@ -170,6 +172,20 @@ def _cmd_track(args: argparse.Namespace) -> int:
             fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
             print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
         print("wrote " + ", ".join(s["outputs"].values()))
+    return 0
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    from surftrack.io.analyze import analyze_mcap, format_analysis, plot_analysis
+
+    try:
+        s = analyze_mcap(args.mcap)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    print(format_analysis(s).rstrip("\n"))
+    png = Path(args.png) if args.png else Path(args.mcap).with_suffix(".analysis.png")
+    plot_analysis(s, png)
+    print(f"wrote {png}")
     return 0
 
 
@@ -248,8 +264,16 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--overlay", metavar="OUT.mp4", help="also write a video with axes, outlines and status")
     tk.add_argument("--export-tum", metavar="DIR", help="also write one TUM trajectory per part (metres)")
     tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
+    tk.add_argument("--joints-csv", metavar="CSV", help="also write the fitted joint angles per frame as CSV")
+    tk.add_argument("--no-joints", action="store_true", help="skip the per-frame joint-angle fit")
     tk.add_argument("--quiet", action="store_true", help="no progress bar")
     tk.set_defaults(func=_cmd_track)
+
+    an = sub.add_parser("analyze", help="per-part trajectories, speeds, path length and jaw opening of a "
+                                        "tracking MCAP (table and PNG)")
+    an.add_argument("mcap", help="MCAP written by `surftrack VIDEO ...`")
+    an.add_argument("--png", help="plot file (default: <mcap stem>.analysis.png)")
+    an.set_defaults(func=_cmd_analyze)
     return p
 
 

@@ -98,7 +98,7 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\n")
     rc = main([str(clip / "video.mp4"), "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"),
                "--model", str(tiny_ckpt), "-o", str(out), "--images", "--quiet", "--keyframe-every", "5",
-               "--config", str(cfg)])
+               "--config", str(cfg), "--joints-csv", str(tmp_path / "joints.csv")])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert "not in the model" in captured.out
@@ -127,3 +127,13 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     assert poses == n_posed > n_frames
     assert {"/tf", "/camera/calibration", "/camera/image", "/camera/annotations", "/parts/meshes"} <= topics
     assert "video.mp4" in meta["surftrack"]["video"] and "tiny.pt" in meta["surftrack"]["model"]
+    # joint angles fitted on every frame with a posed part, in the MCAP (radians) and the CSV (degrees)
+    assert "/instruments/large_needle_driver.0/joints" in topics
+    frames_posed = sum(any(st[i] in ("keyframe", "tracking", "predicted") for st in statuses.values())
+                       for i in range(n_frames))
+    rows = (tmp_path / "joints.csv").read_text().splitlines()
+    assert rows[0].startswith("time_s,instrument,roll_deg") and len(rows) == 1 + frames_posed
+    # `surftrack analyze` reads it back
+    rc = main(["analyze", str(out), "--png", str(tmp_path / "a.png")])
+    text = capsys.readouterr().out
+    assert rc == 0 and "large_needle_driver.0.wrist" in text and (tmp_path / "a.png").stat().st_size > 1000

@@ -199,3 +199,10 @@ def test_interrupted_run_leaves_complete_outputs(clip, tiny_ckpt, tmp_path):
     assert len(list(read_video_frames(tmp_path / "x.mp4"))) == 5
     for p in (tmp_path / "tum").glob("*.tum"):
         assert len(read_tum(p)[0]) <= 5
+
+
+def test_analyze_bad_file(tmp_path, capsys):
+    bad = tmp_path / "junk.mcap"
+    bad.write_bytes(b"not an mcap file at all")
+    _check(capsys, ["analyze", str(bad)], "junk.mcap")
+    _check(capsys, ["analyze", str(tmp_path / "missing.mcap")], "missing.mcap")

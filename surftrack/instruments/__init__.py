@@ -1,6 +1,8 @@
-"""Articulated surgical instruments: parts, kinematics, procedural meshes, YAML library, BOP models."""
+"""Articulated surgical instruments: parts, kinematics, fitting joints to part poses, procedural meshes,
+YAML library, BOP models."""
 
 from surftrack.instruments.bop_models import assign_obj_ids, export_bop_models, load_bop_models, model_info
+from surftrack.instruments.fit import FitConfig, JointFit, estimate_trocar, fit_configuration
 from surftrack.instruments.kinematics import (
     JOINT_NAMES,
     JointLimits,
@@ -21,8 +23,8 @@ from surftrack.instruments.library import (
 from surftrack.instruments.part import Material, Part
 
 __all__ = [
-    "Attachment", "Instrument", "InstrumentError", "JOINT_NAMES", "JointLimits", "JointState",
-    "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "export_bop_models",
-    "instrument_files", "list_instruments", "load_bop_models", "load_instrument", "load_instrument_file",
-    "model_info", "rcm_base_pose",
+    "Attachment", "FitConfig", "Instrument", "InstrumentError", "JOINT_NAMES", "JointFit", "JointLimits",
+    "JointState", "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "estimate_trocar",
+    "export_bop_models", "fit_configuration", "instrument_files", "list_instruments", "load_bop_models",
+    "load_instrument", "load_instrument_file", "model_info", "rcm_base_pose",
 ]

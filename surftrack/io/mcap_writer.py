@@ -3,9 +3,9 @@
 Every message is JSON (channel ``message_encoding="json"``) with a JSON Schema (schema ``encoding=
 "jsonschema"``) whose name is Foxglove's well-known name (``foxglove.PoseInFrame``,
 ``foxglove.FrameTransforms``, ``foxglove.CameraCalibration``, ``foxglove.CompressedImage``,
-``foxglove.ImageAnnotations``, ``foxglove.SceneUpdate``), so Foxglove recognises them by name; the
-part status uses a small schema of our own, ``surftrack.PartStatus``. The schemas are written here,
-following Foxglove's documented field names.
+``foxglove.ImageAnnotations``, ``foxglove.SceneUpdate``, ``foxglove.JointStates``), so Foxglove
+recognises them by name; the part status uses a small schema of our own, ``surftrack.PartStatus``. The
+schemas are written here, following Foxglove's documented field names.
 
 Units and conventions:
 
@@ -22,7 +22,8 @@ Units and conventions:
 Topics: ``/parts/<name>/pose`` (PoseInFrame, frame ``camera``), ``/tf`` (FrameTransforms: one message
 per frame holding every part, parent ``camera`` -> child ``<name>``), ``/parts/<name>/status``,
 ``/camera/calibration``, ``/camera/image`` (JPEG CompressedImage), ``/camera/annotations``,
-``/parts/meshes`` (SceneUpdate: one frame-locked entity per part in the part's frame).
+``/parts/meshes`` (SceneUpdate: one frame-locked entity per part in the part's frame),
+``/instruments/<instrument>/joints`` (JointStates: the fitted joint variables, radians).
 
 The file is always finished (summary, index, statistics written) by ``close()`` or on leaving the
 ``with`` block, including when an exception interrupts the run, so what was written stays readable.
@@ -176,11 +177,24 @@ SCHEMAS: dict[str, dict] = {
             "type": "object", "title": "foxglove.SceneEntityDeletion",
             "properties": {"timestamp": _TIME, "type": {"type": "integer"}, "id": {"type": "string"}}}},
         "entities": {"type": "array", "items": _ENTITY}}),
+    "foxglove.JointStates": dict(_obj("foxglove.JointStates", "The state of a set of joints at a given time", {
+        "timestamp": _TIME,
+        "joints": {"type": "array", "items": {
+            "type": "object", "title": "foxglove.JointState",
+            "description": "The state of a single joint (revolute or prismatic)",
+            "properties": {
+                "name": {"type": "string"},
+                "position": {"type": "number", "description": "rad (revolute) or m (prismatic)"},
+                "velocity": {"type": "number", "description": "rad/s or m/s"},
+                "acceleration": {"type": "number", "description": "rad/s^2 or m/s^2"},
+                "effort": {"type": "number", "description": "Nm or N"}},
+            "required": ["name"]}}}), required=["timestamp", "joints"]),
     "surftrack.PartStatus": _obj("surftrack.PartStatus", "Tracking status of one part", {
         "timestamp": _TIME, "part": {"type": "string"}, "status": {"type": "string"},
         "confidence": {"type": "number"}, "extra": {"type": "object"}}),
 }
 
+_JOINT_FIELDS = ("velocity", "acceleration", "effort")
 _POINTS_TYPES = {"unknown": 0, "points": 1, "line_loop": 2, "line_strip": 3, "line_list": 4}
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -356,6 +370,40 @@ class TrackWriter:
             "timestamp": _stamp(ns), "part": name, "status": str(status),
             "confidence": float(confidence),
             "extra": json.loads(json.dumps(dict(extra or {}), default=_jsonable))})
+
+    def joint_states(self, time_s: float, instrument_name: str, names: Sequence[str],
+                     positions: Sequence[float | None],
+                     extra: Mapping[str, Sequence[float | None]] | None = None) -> None:
+        """``foxglove.JointStates`` on ``/instruments/<instrument_name>/joints``: one entry per joint
+        ``{name, position}``, positions in RADIANS (revolute joints, like ROS ``sensor_msgs/JointState``;
+        the jaw opening too). ``extra`` optionally maps ``"velocity"`` (rad/s), ``"acceleration"``
+        (rad/s^2) or ``"effort"`` to one value per joint. A None or NaN value leaves that field out for
+        that joint (the fields are optional in Foxglove's schema; JSON has no NaN). E.g. for a
+        :class:`~surftrack.instruments.JointFit` ``fit``:
+        ``w.joint_states(t, "lnd", JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])``."""
+        inst = _check_name(instrument_name)
+        names = [_check_name(n) for n in names]
+        positions = list(positions)
+        if len(positions) != len(names):
+            raise ValueError(f"joint_states: {len(names)} names but {len(positions)} positions")
+        extra = dict(extra or {})
+        bad = sorted(set(extra) - set(_JOINT_FIELDS))
+        if bad:
+            raise ValueError(f"joint_states: unknown extra field(s) {bad}; allowed: {list(_JOINT_FIELDS)}")
+        for key, vals in extra.items():
+            if len(vals) != len(names):
+                raise ValueError(f"joint_states: {len(names)} names but {len(vals)} {key} values")
+        joints = []
+        for i, name in enumerate(names):
+            entry = {"name": name}
+            for key, vals in (("position", positions), *extra.items()):
+                v = vals[i]
+                if v is not None and math.isfinite(float(v)):
+                    entry[key] = float(v)
+            joints.append(entry)
+        ns = time_to_ns(time_s)
+        self._write(f"/instruments/{inst}/joints", "foxglove.JointStates", ns,
+                    {"timestamp": _stamp(ns), "joints": joints})
 
     def camera_calibration(self, time_s: float, K, width: int, height: int, dist=None,
                            distortion_model: str | None = None) -> None:

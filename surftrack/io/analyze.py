@@ -1,0 +1,228 @@
+"""Summaries of a tracking log: per-part motion (path length, speed) and jaw opening over time.
+
+:func:`analyze_mcap` reads an MCAP written by :class:`~surftrack.io.TrackWriter`:
+
+* ``/parts/<name>/pose`` (``foxglove.PoseInFrame``, metres; converted back to millimetres here),
+* ``/parts/<name>/status`` (``surftrack.PartStatus``): a frame counts as tracked when the part has a
+  pose at that time and its status there, if one was logged, is in ``tracked_statuses``,
+* ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees).
+
+Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
+and status times, so a logged "lost" frame, or a pose with a non-tracking status, breaks the chain and
+no distance is counted across it): path length = sum of the step lengths, mean speed = path length /
+the summed duration of those steps, max speed = the largest step length / step duration.
+
+:func:`format_analysis` renders the summary as a text table, :func:`plot_analysis` as a PNG.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from mcap.reader import make_reader
+
+__all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
+
+_POSE = re.compile(r"^/parts/([^/]+)/pose$")
+_STATUS = re.compile(r"^/parts/([^/]+)/status$")
+_JOINTS = re.compile(r"^/instruments/([^/]+)/joints$")
+
+
+def _read(path: Path) -> list[tuple[str, str, int, dict]]:
+    """(topic, schema name, log time ns, decoded JSON) of every message; any read or decode problem
+    becomes a one-line ``ValueError`` naming the file."""
+    if not path.is_file():
+        raise ValueError(f"{path}: no such MCAP file")
+    out = []
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            for schema, channel, message in reader.iter_messages(log_time_order=True):
+                if channel.message_encoding != "json":
+                    continue
+                out.append((channel.topic, schema.name if schema else "", message.log_time,
+                            json.loads(message.data)))
+    except Exception as e:  # mcap raises many types (bad magic, truncated records, CRC, zstd, JSON)
+        why = " ".join(f"{type(e).__name__}: {e}".split())
+        raise ValueError(f"{path}: not a readable MCAP tracking log ({why})") from None
+    return out
+
+
+def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[int, bool]) -> dict:
+    """Path length and speeds over consecutive tracked frames (see the module docstring)."""
+    steps_t, steps_v, length, duration = [], [], 0.0, 0.0
+    for a, b in zip(times_ns[:-1], times_ns[1:]):
+        if not (tracked[a] and tracked[b]) or b <= a:
+            continue
+        d = float(np.linalg.norm(xyz_mm[b] - xyz_mm[a]))
+        dt = (b - a) * 1e-9
+        length += d
+        duration += dt
+        steps_t.append(0.5 * (a + b) * 1e-9)
+        steps_v.append(d / dt)
+    return {
+        "path_length_mm": length,
+        "mean_speed_mm_s": length / duration if duration > 0 else None,
+        "max_speed_mm_s": max(steps_v) if steps_v else None,
+        "speed_time_s": steps_t,
+        "speed_mm_s": steps_v,
+    }
+
+
+def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = ("tracking",)) -> dict:
+    """Summary of a TrackWriter MCAP file::
+
+        {"file": str,
+         "parts": {name: {"pose_frames", "tracked_frames", "t_start_s", "t_end_s", "span_s",
+                          "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
+                          "series": {"time_s", "x_mm", "y_mm", "z_mm", "tracked",
+                                     "speed_time_s", "speed_mm_s"}}},
+         "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
+                                "opening_deg": {"min", "mean", "max"} or None,
+                                "series": {"time_s", "<joint>_deg": [...]}}}}
+
+    Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
+    tracked frames; series are plain lists (NaN where a joint has no position). A missing, corrupt or
+    non-MCAP file raises ``ValueError`` with a one-line message naming it.
+    """
+    path = Path(path)
+    tracked_ok = set(tracked_statuses)
+    poses: dict[str, dict[int, np.ndarray]] = {}
+    status: dict[str, dict[int, str]] = {}
+    joints: dict[str, list[tuple[int, dict[str, float]]]] = {}
+    messages = _read(path)
+    try:
+        for topic, schema, ns, msg in messages:
+            if (m := _POSE.match(topic)) and schema == "foxglove.PoseInFrame":
+                p = msg["pose"]["position"]
+                poses.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
+            elif (m := _STATUS.match(topic)) and schema == "surftrack.PartStatus":
+                status.setdefault(m.group(1), {})[ns] = str(msg["status"])
+            elif (m := _JOINTS.match(topic)) and schema == "foxglove.JointStates":
+                vals = {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j}
+                joints.setdefault(m.group(1), []).append((ns, vals))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: malformed tracking message ({type(e).__name__}: {e})") from None
+
+    parts = {}
+    for name in sorted(set(poses) | set(status)):
+        xyz = poses.get(name, {})
+        st = status.get(name, {})
+        frames = sorted(set(xyz) | set(st))
+        tracked = {ns: ns in xyz and (ns not in st or st[ns] in tracked_ok) for ns in frames}
+        pose_ns = sorted(xyz)
+        motion = _motion(frames, xyz, tracked)
+        arr = np.array([xyz[ns] for ns in pose_ns]).reshape(-1, 3)
+        parts[name] = {
+            "pose_frames": len(pose_ns),
+            "tracked_frames": sum(tracked.values()),
+            "t_start_s": pose_ns[0] * 1e-9 if pose_ns else None,
+            "t_end_s": pose_ns[-1] * 1e-9 if pose_ns else None,
+            "span_s": (pose_ns[-1] - pose_ns[0]) * 1e-9 if pose_ns else 0.0,
+            "path_length_mm": motion["path_length_mm"],
+            "mean_speed_mm_s": motion["mean_speed_mm_s"],
+            "max_speed_mm_s": motion["max_speed_mm_s"],
+            "series": {
+                "time_s": [ns * 1e-9 for ns in pose_ns],
+                "x_mm": arr[:, 0].tolist(), "y_mm": arr[:, 1].tolist(), "z_mm": arr[:, 2].tolist(),
+                "tracked": [tracked[ns] for ns in pose_ns],
+                "speed_time_s": motion["speed_time_s"], "speed_mm_s": motion["speed_mm_s"],
+            },
+        }
+
+    instruments = {}
+    for name, msgs in sorted(joints.items()):
+        names = list(dict.fromkeys(j for _, vals in msgs for j in vals))
+        series = {"time_s": [ns * 1e-9 for ns, _ in msgs]}
+        for j in names:
+            series[f"{j}_deg"] = [math.degrees(vals[j]) if j in vals else math.nan for _, vals in msgs]
+        opening = [v for v in series.get("opening_deg", []) if math.isfinite(v)]
+        instruments[name] = {
+            "frames": len(msgs),
+            "t_start_s": msgs[0][0] * 1e-9,
+            "t_end_s": msgs[-1][0] * 1e-9,
+            "joint_names": names,
+            "opening_deg": ({"min": min(opening), "mean": float(np.mean(opening)), "max": max(opening)}
+                            if opening else None),
+            "series": series,
+        }
+    return {"file": str(path), "parts": parts, "instruments": instruments}
+
+
+def _num(v: float | None, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def format_analysis(summary: dict) -> str:
+    """A readable text table of :func:`analyze_mcap`'s summary (one line per part, then per instrument)."""
+    lines = [f"{summary['file']}"]
+    parts = summary["parts"]
+    if not parts:
+        lines.append("no part poses")
+    else:
+        w = max(4, *(len(n) for n in parts))
+        lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'start_s':>8}  {'end_s':>8}  "
+                     f"{'path_mm':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}")
+        for n, p in parts.items():
+            lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  "
+                         f"{_num(p['t_start_s'], '8.3f'):>8}  {_num(p['t_end_s'], '8.3f'):>8}  "
+                         f"{p['path_length_mm']:>9.1f}  {_num(p['mean_speed_mm_s'], '9.1f'):>9}  "
+                         f"{_num(p['max_speed_mm_s'], '9.1f'):>9}")
+    insts = summary["instruments"]
+    if insts:
+        w = max(10, *(len(n) for n in insts))
+        lines.append("")
+        lines.append(f"{'instrument':<{w}}  {'frames':>6}  {'start_s':>8}  {'end_s':>8}  "
+                     f"{'opening_deg min / mean / max':>28}")
+        for n, i in insts.items():
+            o = i["opening_deg"]
+            ostr = "-" if o is None else f"{o['min']:.1f} / {o['mean']:.1f} / {o['max']:.1f}"
+            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}")
+    return "\n".join(lines)
+
+
+def plot_analysis(summary: dict, png_path: str | os.PathLike) -> Path:
+    """PNG of :func:`analyze_mcap`'s summary: x, y, z (mm) against time per part (untracked frames left
+    as gaps), speed per part (one dot per counted step, at its mid-time), and jaw opening per instrument
+    when joints were logged. Returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    has_opening = any("opening_deg" in i["series"] for i in summary["instruments"].values())
+    rows = ["x_mm", "y_mm", "z_mm", "speed"] + (["opening"] if has_opening else [])
+    fig, axes = plt.subplots(len(rows), 1, figsize=(9, 2.0 * len(rows)), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    for name, p in summary["parts"].items():
+        s = p["series"]
+        t = np.asarray(s["time_s"])
+        keep = np.asarray(s["tracked"], dtype=bool)
+        for ax, key in zip(axes[:3], ("x_mm", "y_mm", "z_mm")):
+            ax.plot(t, np.where(keep, np.asarray(s[key]), np.nan), label=name, lw=1.2)
+        axes[3].plot(s["speed_time_s"], s["speed_mm_s"], ".", label=name, ms=4)  # dots: steps may have gaps
+    for ax, label in zip(axes[:4], ("x (mm)", "y (mm)", "z (mm)", "speed (mm/s)")):
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    if has_opening:
+        for name, i in summary["instruments"].items():
+            if "opening_deg" in i["series"]:
+                axes[4].plot(i["series"]["time_s"], i["series"]["opening_deg"], label=name, lw=1.2)
+        axes[4].set_ylabel("jaw opening (deg)")
+        axes[4].grid(alpha=0.3)
+        axes[4].legend(loc="upper right", fontsize=8)
+    if summary["parts"]:
+        axes[0].legend(loc="upper right", fontsize=8, ncol=min(4, len(summary["parts"])))
+    axes[-1].set_xlabel("time (s)")
+    axes[0].set_title(Path(summary["file"]).name)
+    fig.tight_layout()
+    png_path = Path(png_path)
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)
+    return png_path

@@ -1,0 +1,56 @@
+"""Joint angles from tracked part poses, frame by frame (the kinematics output of a tracking run).
+
+:class:`ArticulationTracker` fits each instrument's articulated configuration (base pose on the shaft
+axis, roll, wrist pitch, wrist yaw, jaw opening; :func:`surftrack.instruments.fit_configuration`) to
+the poses of its parts that have one this frame, weighted by their confidence and warm-started from the
+previous fit. The trocar (remote centre of motion) is estimated from the fitted shaft axes once enough
+of them (``trocar_after``) with a measured shaft have been seen, re-estimated every ``trocar_every``
+fits, and used as a constraint from then on; it stays unknown while the axes barely change direction
+(they then do not pin a point).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from surftrack.instruments import JointFit, estimate_trocar, fit_configuration, load_instrument
+from surftrack.track.tracker import PartState
+
+POSED = ("keyframe", "tracking", "predicted")
+
+
+class ArticulationTracker:
+    """Per (instrument, instance): ``update(states)`` -> the frame's :class:`JointFit` or None (no
+    posed part)."""
+
+    def __init__(self, instrument_name: str, trocar_after: int = 30, trocar_every: int = 30,
+                 history: int = 300):
+        self.instrument = load_instrument(instrument_name)
+        self.prev: JointFit | None = None
+        self.trocar: np.ndarray | None = None
+        self.axes: deque = deque(maxlen=history)
+        self.trocar_after, self.trocar_every = trocar_after, trocar_every
+        self._since_trocar = 0
+
+    def update(self, states: list[PartState]) -> JointFit | None:
+        poses = {s.spec.part: (s.R, s.t) for s in states if s.status in POSED and s.R is not None}
+        if not poses:
+            return None
+        weights = {s.spec.part: max(s.confidence, 0.05) for s in states if s.spec.part in poses}
+        try:
+            fit = fit_configuration(self.instrument, poses, weights=weights, trocar_mm=self.trocar, init=self.prev)
+        except ValueError:
+            return None
+        self.prev = fit
+        if "shaft" in fit.parts_used and fit.ok:
+            self.axes.append((fit.base_R, fit.base_t))
+            self._since_trocar += 1
+            if len(self.axes) >= self.trocar_after and (self.trocar is None or self._since_trocar >= self.trocar_every):
+                self._since_trocar = 0
+                try:
+                    self.trocar = estimate_trocar(list(self.axes))
+                except ValueError:
+                    pass  # near-parallel axes: the point is not determined yet
+        return fit

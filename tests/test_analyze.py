@@ -1,0 +1,105 @@
+"""Tracking-log summaries (``surftrack.io.analyze``) of MCAP files written by TrackWriter."""
+
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from surftrack.io import TrackWriter, analyze_mcap, format_analysis, plot_analysis
+
+FPS = 10.0
+N = 21                                        # 2 s
+SHAFT_V = np.array([3.0, 4.0, 0.0]) * 4.0     # 20 mm/s
+JAW_V = np.array([0.0, -30.0, 40.0])          # 50 mm/s
+LOST = {8, 9}                                 # jaw frames reported lost
+
+
+def write_log(path):
+    """Shaft in a straight line at 20 mm/s; jaw at 50 mm/s, lost on frames 8-9 (frame 8 without a pose,
+    frame 9 with a pose but status "lost"), jumping 100 mm between frames 9 and 10; jaw opening 20 + 10 sin."""
+    R = np.eye(3)
+    with TrackWriter(path) as w:
+        for i in range(N):
+            t = i / FPS
+            w.pose("shaft", t, R, np.array([10.0, -5.0, 80.0]) + SHAFT_V * t)
+            w.status(t, "shaft", "tracking", 0.9)
+            jaw = np.array([0.0, 0.0, 60.0]) + JAW_V * t + (100.0 if i >= 10 else 0.0)
+            if i != 8:
+                w.pose("jaw", t, R, jaw)
+            w.status(t, "jaw", "lost" if i in LOST else "tracking", 0.1 if i in LOST else 0.8)
+            w.joint_states(t, "large_needle_driver", ["roll", "opening"],
+                           [0.0, math.radians(20.0 + 10.0 * math.sin(2 * math.pi * 0.5 * t))])
+
+
+def test_straight_line_speed_and_path(tmp_path):
+    path = tmp_path / "tracks.mcap"
+    write_log(path)
+    s = analyze_mcap(path)
+
+    shaft = s["parts"]["shaft"]
+    assert shaft["pose_frames"] == N and shaft["tracked_frames"] == N
+    assert shaft["t_start_s"] == 0.0 and shaft["t_end_s"] == pytest.approx(2.0)
+    assert shaft["path_length_mm"] == pytest.approx(20.0 * 2.0, rel=1e-9)
+    assert shaft["mean_speed_mm_s"] == pytest.approx(20.0, rel=1e-9)
+    assert shaft["max_speed_mm_s"] == pytest.approx(20.0, rel=1e-9)
+    assert shaft["series"]["x_mm"][-1] == pytest.approx(10.0 + 12.0 * 2.0)  # metres in the file, mm here
+
+    # jaw: steps touching frames 8 and 9 are not counted (no pose / "lost"), nor is the 100 mm jump
+    jaw = s["parts"]["jaw"]
+    assert jaw["pose_frames"] == N - 1 and jaw["tracked_frames"] == N - len(LOST)
+    counted_steps = (N - 1) - 3  # steps 7-8, 8-9, 9-10 dropped
+    assert jaw["path_length_mm"] == pytest.approx(50.0 * counted_steps / FPS, rel=1e-9)
+    assert jaw["mean_speed_mm_s"] == pytest.approx(50.0, rel=1e-9)
+    assert jaw["max_speed_mm_s"] == pytest.approx(50.0, rel=1e-9)
+    assert len(jaw["series"]["speed_mm_s"]) == counted_steps
+    assert jaw["series"]["tracked"][8] is False  # index 8 of the poses is frame 9 (frame 8 had none)
+
+    inst = s["instruments"]["large_needle_driver"]
+    assert inst["frames"] == N and inst["joint_names"] == ["roll", "opening"]
+    assert inst["opening_deg"]["min"] == pytest.approx(10.0, abs=0.1)
+    assert inst["opening_deg"]["max"] == pytest.approx(30.0, abs=0.1)
+    assert inst["series"]["opening_deg"][5] == pytest.approx(30.0)  # t = 0.5 s
+
+    text = format_analysis(s)
+    assert "shaft" in text and "jaw" in text and "large_needle_driver" in text
+    assert "40.0" in text and "20.0" in text and "10.0 / " in text
+    png = plot_analysis(s, tmp_path / "tracks.png")
+    with Image.open(png) as im:
+        assert im.format == "PNG" and im.size[0] > 300 and im.size[1] > 500
+
+
+def test_any_status_can_count_as_tracked(tmp_path):
+    path = tmp_path / "tracks.mcap"
+    write_log(path)
+    s = analyze_mcap(path, tracked_statuses=("tracking", "lost"))
+    assert s["parts"]["jaw"]["tracked_frames"] == N - 1  # frame 8 still has no pose
+    assert s["parts"]["jaw"]["max_speed_mm_s"] > 500.0    # now the 100 mm jump (frames 9-10) is counted
+
+
+def test_bad_files_raise_one_line_value_error(tmp_path):
+    missing = tmp_path / "nope.mcap"
+    with pytest.raises(ValueError, match="nope.mcap"):
+        analyze_mcap(missing)
+    text = tmp_path / "notes.mcap"
+    text.write_text("not an mcap file\n")
+    with pytest.raises(ValueError, match="notes.mcap") as e:
+        analyze_mcap(text)
+    assert "\n" not in str(e.value)
+    good = tmp_path / "tracks.mcap"
+    write_log(good)
+    cut = tmp_path / "cut.mcap"
+    data = good.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="cut.mcap") as e:
+        analyze_mcap(cut)
+    assert "\n" not in str(e.value)
+
+
+def test_empty_log(tmp_path):
+    path = tmp_path / "empty.mcap"
+    TrackWriter(path).close()
+    s = analyze_mcap(path)
+    assert s["parts"] == {} and s["instruments"] == {}
+    assert "no part poses" in format_analysis(s)
+    assert plot_analysis(s, tmp_path / "empty.png").is_file()
