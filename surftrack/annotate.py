@@ -13,6 +13,7 @@ Every output is finalised when the run stops early (bad frame, Ctrl-C): what was
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -82,6 +83,10 @@ def match_parts(doc: dict, model, source: str) -> tuple[list[PartSpec], list[str
             continue
         specs.append(PartSpec(int(pid), info.obj_id, inst, int(d["instance"]), d["part"],
                               np.asarray(info.vertices, np.float64), np.asarray(info.faces, np.int64)))
+    names = [s.name for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"{source}: several part ids denote the same part {dup[0]} (instrument, instance, part)")
     if not specs:
         raise InputError(f"{source}: none of its parts is known to the model (model instruments: "
                          f"{', '.join(sorted(known_instruments))}; file: {', '.join(sorted(skipped))})")
@@ -89,12 +94,28 @@ def match_parts(doc: dict, model, source: str) -> tuple[list[PartSpec], list[str
     return specs, notes
 
 
-def _frame_boxes(doc: dict) -> dict[int, dict[int, list]]:
+def _undistort_box(box: tuple, cam) -> tuple:
+    """The box (pixel edges) around the undistorted positions of points on the box's outline."""
+    x, y, w, h = box
+    s = np.linspace(0.0, 1.0, 9)
+    edge = np.concatenate([np.c_[x + w * s, np.full(9, y)], np.c_[x + w * s, np.full(9, y + h)],
+                           np.c_[np.full(9, x), y + h * s], np.c_[np.full(9, x + w), y + h * s]]) - 0.5
+    und = cv2.undistortPoints(edge.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2) + 0.5
+    x0, y0 = np.clip(und.min(0), 0, [cam.width, cam.height])
+    x1, y1 = np.clip(und.max(0), 0, [cam.width, cam.height])
+    return (float(x0), float(y0), float(x1 - x0), float(y1 - y0))
+
+
+def _frame_boxes(doc: dict, cam) -> dict[int, dict[int, list]]:
+    """frame index -> part id -> [(box, score)], boxes moved into the undistorted frames."""
+    distorted = bool(np.any(cam.dist))
     out: dict[int, dict[int, list]] = {}
     for f in doc["frames"]:
         per = out.setdefault(int(f["index"]), {})
         for d in f["detections"]:
-            per.setdefault(int(d["part_id"]), []).append((tuple(float(v) for v in d["bbox"]), float(d["score"])))
+            box = tuple(float(v) for v in d["bbox"])
+            per.setdefault(int(d["part_id"]), []).append((_undistort_box(box, cam) if distorted else box,
+                                                          float(d["score"])))
     return out
 
 
@@ -168,7 +189,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                               box_scale=train_cfg.data.scale)
     tracker = Tracker(estimator, cam.K, size, specs, opts.config)
     undistort = cam.undistorter()
-    per_frame = _frame_boxes(doc)
+    per_frame = _frame_boxes(doc, cam)
     det_times = {int(f["index"]): float(f["time"]) for f in doc["frames"]} \
         if not doc.get("_times_from_video") else {}
     half_frame = 0.5 / info.fps
@@ -179,7 +200,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     counts = {s.name: Counter() for s in specs}
     conf_sum = {s.name: 0.0 for s in specs}
     timing = Counter()
-    n_done, t_first, stopped = 0, None, None
+    n_done, t_first, stopped, last_t = 0, None, None, None
     overlay = tum = joints_csv = None
     fitters = {}
     if opts.joints or opts.joints_csv is not None:
@@ -188,20 +209,20 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         fitters = {(s.instrument, s.instance): ArticulationTracker(s.instrument) for s in specs}
     from tqdm import tqdm
 
-    writer = TrackWriter(out, meta)  # opened before heavy work: an unwritable path fails here
-    try:
+    with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
+        writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
         if opts.overlay is not None:
             from surftrack.io.overlay import OverlayWriter
 
-            overlay = OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K)
+            overlay = outputs_open.enter_context(OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K))
         if opts.export_tum is not None:
             from surftrack.io.tum import TumWriter
 
-            tum = TumWriter(opts.export_tum)
+            tum = outputs_open.enter_context(TumWriter(opts.export_tum))
         if opts.joints_csv is not None:
             from surftrack.io.joints_csv import JointCsvWriter
 
-            joints_csv = JointCsvWriter(opts.joints_csv)
+            joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
         bar = tqdm(total=info.frames or None, unit="frame", desc=video.name, disable=not opts.progress)
         wall0 = time.perf_counter()
         try:
@@ -212,6 +233,10 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     continue
                 if opts.end is not None and t_s > opts.end + 1e-9:
                     break
+                if last_t is not None and t_s <= last_t:
+                    raise InputError(f"{video}: frame {index} has time {t_s:.6f} s, not after the previous "
+                                     f"frame's {last_t:.6f} s (broken timestamps; remux the video)")
+                last_t = t_s
                 if index in det_times and abs(det_times[index] - t_s) > half_frame:
                     raise InputError(f"{boxes}: frame {index} is at {det_times[index]:.3f} s there but at "
                                      f"{t_s:.3f} s in {video}: the boxes belong to another video or frame rate")
@@ -266,14 +291,6 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         finally:
             bar.close()
             wall = time.perf_counter() - wall0
-    finally:
-        writer.close()
-        if overlay is not None:
-            overlay.close()
-        if tum is not None:
-            tum.close()
-        if joints_csv is not None:
-            joints_csv.close()
     if n_done == 0:
         raise InputError(f"{video}: no frame between --start and --end")
     outputs = {"mcap": str(out)}

@@ -137,3 +137,20 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     rc = main(["analyze", str(out), "--png", str(tmp_path / "a.png")])
     text = capsys.readouterr().out
     assert rc == 0 and "large_needle_driver.0.wrist" in text and (tmp_path / "a.png").stat().st_size > 1000
+
+
+def test_pnp_covariance_is_large_along_an_unconstrained_direction():
+    """Points on a line (a bare shaft's axis) do not fix the rotation about it: that variance must be
+    huge, not zero, so the Kalman filter does not trust it."""
+    from surftrack.track.flow import TrackPoints
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 256], [0, 0, 1]])
+    xyz = np.c_[np.zeros(40), np.zeros(40), np.linspace(-20, 20, 40)]
+    R = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # the part's z axis (the line) runs down the image
+    t = np.array([0.0, 0.0, 60.0])
+    uv = (xyz @ R.T + t) @ K.T
+    pts = TrackPoints(uv[:, :2] / uv[:, 2:], xyz)
+    m = pnp_measurement(pts, K, R, t)
+    assert m is not None
+    assert np.isfinite(m.cov).all() and m.cov[5, 5] > 1e3  # body-frame rotation about z: unconstrained
+    assert m.cov[0, 0] < 1.0 and m.cov[3, 3] < 1e-3          # position and tilt: well constrained

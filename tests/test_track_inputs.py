@@ -91,6 +91,11 @@ def test_bad_boxes(clip, tiny_ckpt, tmp_path, capsys):
     p.write_text(json.dumps(d))
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "jawz")
     d = _det(clip)
+    lnd = [k for k, v in d["parts"].items() if v["instrument"] == "large_needle_driver"]
+    d["parts"][lnd[1]] = dict(d["parts"][lnd[0]])  # two ids for the same part
+    p.write_text(json.dumps(d))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}), "det.json", "same part")
+    d = _det(clip)
     for v in d["parts"].values():
         v["instrument"] = "harmonic_scalpel"
     p.write_text(json.dumps(d))
@@ -115,6 +120,10 @@ def test_wrong_intrinsics(clip, tiny_ckpt, tmp_path, capsys):
     K[0][0] = -5.0
     p.write_text(json.dumps(dict(cam, K=K)))
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "fx")
+    K = [row[:] for row in cam["K"]]
+    K[0][1] = 0.5
+    p.write_text(json.dumps(dict(cam, K=K)))
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "skew")
     p.write_text(json.dumps(dict(cam, K=[[1, 2], [3, 4]])))
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(p)}), "camera.json", "3x3")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--camera": str(tmp_path / "none.json")}), "none.json")

@@ -74,9 +74,11 @@ class TrackConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
-        for name in ("max_points", "min_points", "refresh_every", "max_predicted"):
+        for name in ("max_points", "refresh_every", "max_predicted"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.min_points < 4:
+            raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -216,7 +216,10 @@ def pnp_measurement(pts: TrackPoints, K: np.ndarray, R0: np.ndarray, t0: np.ndar
     J = _jacobian(K, R, t, obj[inl])
     sigma = max(rms, noise_floor_px)
     info = J.T @ J / sigma**2
-    cov = np.linalg.pinv(info + np.eye(6) * 1e-9)
+    # Invert through the eigen-decomposition with a floor on the information: a direction the points do
+    # not constrain (a bare cylinder's roll) gets a huge variance, never pinv's zero.
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    cov = V @ np.diag(1.0 / np.maximum(w, 1e-6)) @ V.T
     return PnPResult(R, t, 0.5 * (cov + cov.T), inl, float(inl.mean()), rms)
 
 

@@ -6,7 +6,8 @@ Every problem raises :class:`InputError` with one line naming the file and what 
   ``surftrack synth-clip``) or a BOP ``scene_camera.json`` (first entry's ``cam_K``; the size is the
   video's). Distortion coefficients (OpenCV order, 4/5/8/12/14 values) are removed from every frame.
 * Detections: our ``det.json`` (:mod:`surftrack.synth.detections`) or a COCO-style file with ``images``
-  (``id``, and ``frame_index`` or a number in ``file_name``), ``annotations`` (``image_id``,
+  (``id``, and ``frame_index`` or, failing that, the last number in ``file_name``; both are 0-based
+  decoded-frame indices: renumber frames extracted by ffmpeg's 1-based ``%06d``), ``annotations`` (``image_id``,
   ``category_id``, ``bbox`` [x, y, w, h] in pixel-edge coordinates as COCO's, optional ``score``) and
   ``categories`` (``id``, ``name`` = part, ``supercategory`` = instrument; or ``name`` =
   ``"<instrument>/<part>"``).
@@ -93,7 +94,9 @@ def load_camera(path: str | Path, video_size: tuple[int, int]) -> CameraInput:
         raise InputError(f"{path}: dist must have 0, 4, 5, 8, 12 or 14 OpenCV coefficients, got {len(dist_a)}")
     fx, fy, cx, cy = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
     if not (fx > 0 and fy > 0) or Km[1, 0] != 0 or Km[2, 0] != 0 or Km[2, 1] != 0 or Km[2, 2] != 1:
-        raise InputError(f"{path}: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        raise InputError(f"{path}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    if Km[0, 1] != 0:
+        raise InputError(f"{path}: K has skew {Km[0, 1]:g}; only zero-skew intrinsics are supported")
     try:
         w, h = int(size[0]), int(size[1])
     except (TypeError, ValueError):
@@ -109,6 +112,15 @@ def load_camera(path: str | Path, video_size: tuple[int, int]) -> CameraInput:
 
 def _coco_to_det(doc: dict, path: Path, video_size: tuple[int, int]) -> dict:
     """Our detection document from a COCO-style one (times filled in later from the video)."""
+    try:
+        return _coco_to_det_checked(doc, path, video_size)
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise InputError(f"{path}: malformed COCO file ({e.__class__.__name__}: {e})") from None
+
+
+def _coco_to_det_checked(doc: dict, path: Path, video_size: tuple[int, int]) -> dict:
     try:
         cats = {int(c["id"]): c for c in doc["categories"]}
         images = doc["images"]
@@ -149,6 +161,8 @@ def _coco_to_det(doc: dict, path: Path, video_size: tuple[int, int]) -> dict:
             raise InputError(f"{path}: annotations[{k}].image_id {iid} is not in images")
         if cid not in cats:
             raise InputError(f"{path}: annotations[{k}].category_id {cid} is not in categories")
+        if not (len(bbox) == 4 and bbox[2] > 0 and bbox[3] > 0):
+            raise InputError(f"{path}: annotations[{k}].bbox must be [x, y, w, h] with w, h > 0, got {bbox}")
         frames.setdefault(frame_of[iid], []).append(
             {"part_id": pid_of[cid], "bbox": bbox, "score": float(a.get("score", 1.0))})
     out = detections_document(video_size, parts, [{"index": i, "time": 0.0, "detections": frames[i]}

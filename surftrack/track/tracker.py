@@ -151,7 +151,7 @@ class Tracker:
 
     # ------------------------------------------------------------------ helpers
     def _pick_box(self, tr: _Track, boxes: Sequence[tuple[Box, float]], pbox: Box | None) -> Box | None:
-        cands = [(b, s) for b, s in boxes if s >= self.cfg.min_box_score]
+        cands = [(b, s) for b, s in boxes if s >= self.cfg.min_box_score and b[2] >= 2.0 and b[3] >= 2.0]
         if not cands:
             return None
         if pbox is not None:
@@ -160,13 +160,12 @@ class Tracker:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
 
-    def _instrument_poses(self, tr: _Track) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        key = (tr.spec.instrument, tr.spec.instance)
-        return {o.spec.name: o.kf.pose for o in self.tracks
-                if (o.spec.instrument, o.spec.instance) == key and o.has_pose}
+    def _posed(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Poses of every part with one (all instruments: a crossing tool hides what is behind it)."""
+        return {o.spec.name: o.kf.pose for o in self.tracks if o.has_pose}
 
     def _refresh(self, tr: _Track, gray: np.ndarray) -> None:
-        tr.points = visible_points(gray, self.K, self.samples, self._instrument_poses(tr), tr.spec.name,
+        tr.points = visible_points(gray, self.K, self.samples, self._posed(), tr.spec.name,
                                    max_points=self.cfg.max_points)
         tr.n_points_fresh = len(tr.points)
         tr.since_refresh = 0
@@ -283,19 +282,26 @@ class Tracker:
                 good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
                 conf = float(1.0 - np.exp(-max(res.score, 0.0)))
                 if tr.has_pose and good:
-                    if not tr.kf.update(res.R, res.t, self._est_cov):
-                        tr.kf.init(res.R, res.t, time_s, self._est_cov)
-                    tr.status, tr.confidence = "keyframe", conf
+                    if res.counts.get("prior_won"):
+                        # the tracked pose explains the image best: a confirmation, not a new measurement
+                        # (fusing the filter's own pose again would shrink its covariance for nothing)
+                        tr.status, tr.confidence = "keyframe", max(conf, tr.confidence)
+                    else:
+                        if not tr.kf.update(res.R, res.t, self._est_cov):
+                            tr.kf.init(res.R, res.t, time_s, self._est_cov)  # scored better than the track
+                        tr.status, tr.confidence = "keyframe", conf
+                    tr.since_keyframe, tr.since_meas = 0, 0
                 elif good:
                     tr.kf.init(res.R, res.t, time_s, self._est_cov)
                     tr.status, tr.confidence = "keyframe", conf
-                elif tr.has_pose and why == "cadence":
-                    pass  # the estimator failed on a healthy track: keep tracking
+                    tr.since_keyframe, tr.since_meas = 0, 0
+                elif tr.has_pose and (why in ("cadence", "box disagreement")
+                                      or tr.since_meas < 3 * cfg.max_predicted):
+                    # the estimator failed (or the box was a false one): keep the track on the filter
+                    tr.since_keyframe = 0
                 else:
                     tr.drop()
                     tr.info["why_lost"] = "estimator failed"
-                if tr.has_pose:
-                    tr.since_keyframe, tr.since_meas = 0, 0
         # 4. refresh flow points where needed (after all poses of the frame are settled)
         for tr in self.tracks:
             if not tr.has_pose:
