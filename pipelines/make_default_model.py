@@ -7,15 +7,16 @@ Steps (each resumable: an existing output is reused):
 1. ``surftrack synth``: 400 LND images (seed 11) and 2,000 LND images (seed 12), the default synthesis
    config; 100 held-out LND images (seed 13) for evaluation.
 2. ``surftrack train --config lite``: 2,000 steps on the 400 images with a constant learning rate
-   (``schedule: constant``), then 3,500 steps on the 2,000 images started from those weights (``--init``),
-   with the lite config's cosine decay.
+   (``schedule: constant``); 3,500 steps on the 2,000 images started from those weights (``--init``),
+   with the lite config's cosine decay; 3,000 more steps on the same images from those weights at half
+   the learning rates (1.5e-4 / 1.5e-5), cosine again.
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
    ``models/default.curves.png``.
 4. ``surftrack eval`` (fast preset) on the held-out images; the table goes to ``models/default.eval.md``
    and, by hand, into ``models/MODEL_CARD.md``.
 
-On the 2-core CPU machine of the model card the whole recipe takes about 2.5 hours (synthesis ~8 min,
-training ~2 h 15 min, evaluation a few minutes).
+On the 2-core CPU machine of the model card the whole recipe takes about 3.5 hours (synthesis ~8 min,
+training ~3 h, evaluation a few minutes).
 """
 
 from __future__ import annotations
@@ -58,12 +59,16 @@ def main(argv: list[str] | None = None) -> int:
     stage2 = work / "stage2.pt"
     if not stage2.is_file() or load_checkpoint(stage2)[2]["step"] < 3500:
         train(lite, work / "lnd2k", stage2, steps=3500, device=args.device, init=stage1, resume=stage2.is_file())
+    stage3 = work / "stage3.pt"
+    if not stage3.is_file() or load_checkpoint(stage3)[2]["step"] < 3000:
+        train(lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5}), work / "lnd2k", stage3, steps=3000,
+              device=args.device, init=stage2, resume=stage3.is_file())
 
-    model, cfg, blob = load_checkpoint(stage2)
+    model, cfg, blob = load_checkpoint(stage3)
     models = REPO / "models"
     models.mkdir(exist_ok=True)
     save_checkpoint(models / "default.pt", model, cfg, blob["step"], int8=True)
-    shutil.copy(stage2.with_suffix(".curves.png"), models / "default.curves.png")
+    shutil.copy(stage3.with_suffix(".curves.png"), models / "default.curves.png")
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
     if not args.skip_eval:

@@ -154,3 +154,21 @@ def test_pnp_covariance_is_large_along_an_unconstrained_direction():
     assert m is not None
     assert np.isfinite(m.cov).all() and m.cov[5, 5] > 1e3  # body-frame rotation about z: unconstrained
     assert m.cov[0, 0] < 1.0 and m.cov[3, 3] < 1e-3          # position and tilt: well constrained
+
+
+def test_bundled_model_tracks_the_clip_against_ground_truth(clip, tmp_path):
+    """The default model (models/default.pt, no --model) on the test clip: every frame where the wrist is
+    visible has a pose, and its rotation is right to within the model's accuracy (an untrained model
+    is off by 60-90 deg)."""
+    from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.paths import default_model_path
+
+    assert default_model_path().is_file(), "the bundled model is part of the repository"
+    score = TrackScore(ClipGroundTruth(clip / "gt.json"))
+    run = annotate_video(clip / "video.mp4", clip / "det.json",
+                         AnnotateOptions(camera=clip / "camera.json", out=tmp_path / "t.mcap", progress=False),
+                         on_frame=lambda i, t, states: score.add_frame(i, t, states))
+    wrist = score.summary()["large_needle_driver.0.wrist"]
+    assert run["frames"] == len(_frames(clip))
+    assert wrist["visible_frames"] >= 5 and wrist["posed_frames"] == wrist["visible_frames"], wrist
+    assert wrist["re_median_deg"] < 25.0 and wrist["te_median_mm"] < 20.0, wrist
