@@ -403,6 +403,12 @@ class PartOverlay:
     def label(self) -> str:
         return f"{self.name} {self.status} {self.confidence:.2f}"
 
+    @property
+    def short_label(self) -> str:
+        """The in-image label: the last dotted component of the name (the part) and the confidence; the
+        legend carries the full label."""
+        return f"{self.name.rsplit('.', 1)[-1]} {self.confidence:.2f}"
+
 
 def _clip_segment(p: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple | None:
     """Liang-Barsky clip of the 2D segment p-q to the box [lo, hi]; None when it lies outside."""
@@ -464,11 +470,11 @@ def _draw_label(img: np.ndarray, part: PartOverlay, anchor) -> None:
     H, W = img.shape[:2]
     if not np.all(np.isfinite(anchor)):
         return
-    (tw, th), base = cv2.getTextSize(part.label, _FONT, _FONT_SCALE, 1)
+    (tw, th), base = cv2.getTextSize(part.short_label, _FONT, _FONT_SCALE, 1)
     x = int(np.clip(anchor[0] + 2, 2, max(W - tw - 2, 2)))
     y = int(np.clip(anchor[1] - base - 1, th + 2, max(H - base - 2, th + 2)))  # baseline
     _darken(img, x - 2, y - th - 2, x + tw + 2, y + base + 1)
-    _text(img, part.label, (x, y), STATUS_COLORS[part.status])
+    _text(img, part.short_label, (x, y), STATUS_COLORS[part.status])
 
 
 def _draw_part(img: np.ndarray, K: np.ndarray, part: PartOverlay) -> None:
