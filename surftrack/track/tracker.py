@@ -295,17 +295,20 @@ class Tracker:
                     tr.kf.init(res.R, res.t, time_s, self._est_cov)
                     tr.status, tr.confidence = "keyframe", conf
                     tr.since_keyframe, tr.since_meas = 0, 0
-                elif tr.has_pose and (why in ("cadence", "box disagreement")
-                                      or tr.since_meas < 3 * cfg.max_predicted):
-                    # the estimator failed (or the box was a false one): keep the track on the filter
+                elif tr.has_pose and res.ok and res.score > 0.0 and (
+                        why in ("cadence", "box disagreement") or tr.since_meas < 3 * cfg.max_predicted):
+                    # inconclusive (too few inliers, or a false box): keep the track on the filter
                     tr.since_keyframe = 0
                 else:
+                    # the network sees nothing of the part where it should be (score <= 0: no pixel agrees
+                    # with any pose, not even the tracked one), or recovery failed: flow would only follow
+                    # the background now
                     tr.drop()
-                    tr.info["why_lost"] = "estimator failed"
+                    tr.info["why_lost"] = "not seen by the estimator" if res.score <= 0.0 else "estimator failed"
         # 4. refresh flow points where needed (after all poses of the frame are settled)
         for tr in self.tracks:
-            if not tr.has_pose:
-                continue
+            if tr.status not in ("keyframe", "tracking"):
+                continue  # never pick points at an unconfirmed (predicted) pose: they may lie on the background
             stale = (tr.status == "keyframe" or tr.since_refresh >= cfg.refresh_every
                      or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
             if stale:
