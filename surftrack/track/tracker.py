@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import trimesh
 
 from surftrack.pose import PoseEstimator
 from surftrack.track.config import TrackConfig
@@ -139,8 +140,6 @@ class Tracker:
         self.size = (int(image_size[0]), int(image_size[1]))
         self.tracks = [_Track(s, self.cfg) for s in specs]
         self.samples: dict[str, SurfaceSamples] = {}
-        import trimesh
-
         for s in specs:
             mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
             self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
