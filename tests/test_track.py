@@ -204,8 +204,11 @@ def test_one_box_per_appearance_is_enough(clip, lnd_parts, tmp_path):
                    on_frame=lambda i, t, states: statuses.append(
                        next(s.status for s in states if s.spec.part == "wrist")))
     posed = [s in ("keyframe", "tracking", "predicted") for s in statuses]
-    assert all(p for p, v in zip(posed, visible) if v) or sum(p and v for p, v in zip(posed, visible)) >= \
-        0.8 * sum(visible), list(zip(statuses, visible))
+    # followed without boxes for the next frames of each appearance; over the clip, the crossing tool
+    # may hide the wrist from the estimator near the end (then it is lost until the next box)
+    follow = [i for f in firsts for i in range(f, f + 4) if i < len(visible) and all(visible[f:i + 1])]
+    assert all(posed[i] for i in follow), list(zip(statuses, visible))
+    assert sum(p and v for p, v in zip(posed, visible)) >= 0.7 * sum(visible), list(zip(statuses, visible))
     # once the tool is gone: never tracked on the background; the filter may extrapolate a few frames
     # (until the estimator is asked again and sees nothing), then the part is lost
     gone = [s for s, v in zip(statuses, visible) if not v]

@@ -111,6 +111,7 @@ class _Track:
         self.since_refresh = 0
         self.since_meas = 0
         self.seeded = False
+        self.unseen = 0  # estimator runs in a row that saw nothing of a tracked part
         self.info: dict = {}
         rng = np.random.default_rng(spec.obj_id)
         v = spec.vertices
@@ -122,6 +123,7 @@ class _Track:
 
     def drop(self) -> None:
         self.kf = PoseKalman(self.cfg.kalman)
+        self.unseen = 0
         self.status, self.confidence = "lost", 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
@@ -280,6 +282,8 @@ class Tracker:
                                prior_won=bool(res.counts.get("prior_won", 0)))
                 good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
                 conf = float(1.0 - np.exp(-max(res.score, 0.0)))
+                if good:
+                    tr.unseen = 0
                 if tr.has_pose and good:
                     if res.counts.get("prior_won"):
                         # the tracked pose explains the image best: a confirmation, not a new measurement
@@ -298,6 +302,11 @@ class Tracker:
                         why in ("cadence", "box disagreement") or tr.since_meas < 3 * cfg.max_predicted):
                     # inconclusive (too few inliers, or a false box): keep the track on the filter
                     tr.since_keyframe = 0
+                elif tr.has_pose and why in ("cadence", "box disagreement") and tr.unseen == 0:
+                    # flow still supports the track but the network sees nothing (an occluder, a poor
+                    # crop): ask again on the next frame before giving the part up
+                    tr.unseen += 1
+                    tr.since_keyframe = cfg.keyframe_every
                 else:
                     # the network sees nothing of the part where it should be (score <= 0: no pixel agrees
                     # with any pose, not even the tracked one), or recovery failed: flow would only follow
