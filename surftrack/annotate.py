@@ -200,7 +200,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     counts = {s.name: Counter() for s in specs}
     conf_sum = {s.name: 0.0 for s in specs}
     timing = Counter()
-    n_done, t_first, stopped, last_t = 0, None, None, None
+    n_done, t_first, last_t = 0, None, None
     overlay = tum = joints_csv = None
     fitters = {}
     if opts.joints or opts.joints_csv is not None:
@@ -212,7 +212,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
         writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
         if opts.overlay is not None:
-            from surftrack.io.overlay import OverlayWriter
+            from surftrack.io.overlay import OverlayWriter, PartOverlay
 
             overlay = outputs_open.enter_context(OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K))
         if opts.export_tum is not None:
@@ -257,13 +257,11 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 if posed:
                     writer.poses(t_s, posed)
                 if opts.mcap_images:
-                    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
+                    _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
                                            [cv2.IMWRITE_JPEG_QUALITY, 85])
                     writer.image_jpeg(t_s, jpg.tobytes())
                     writer.annotations(t_s, **_annotations(cam.K, states))
                 if overlay is not None:
-                    from surftrack.io.overlay import PartOverlay
-
                     overlay.write(frame, t_s, [PartOverlay(s.spec.name, s.status, s.confidence, s.R, s.t, s.box,
                                                            (s.spec.vertices, s.spec.faces), 8.0) for s in states])
                 if tum is not None:
@@ -285,9 +283,6 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 n_done += 1
                 bar.update(1)
                 bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
-        except KeyboardInterrupt:
-            stopped = "interrupted"
-            raise
         finally:
             bar.close()
             wall = time.perf_counter() - wall0
@@ -302,7 +297,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         outputs["joints_csv"] = str(opts.joints_csv)
     return {"video": str(video), "frames": n_done, "seconds": wall, "fps": n_done / max(wall, 1e-9),
             "track_ms_per_frame": 1e3 * timing["track_s"] / n_done,
-            "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes, "stopped": stopped,
+            "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes,
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}
                       for name, c in counts.items()},
             "outputs": outputs}
