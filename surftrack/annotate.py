@@ -190,8 +190,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     tracker = Tracker(estimator, cam.K, size, specs, opts.config)
     undistort = cam.undistorter()
     per_frame = _frame_boxes(doc, cam)
-    det_times = {int(f["index"]): float(f["time"]) for f in doc["frames"]} \
-        if not doc.get("_times_from_video") else {}
+    det_times = {} if doc.get("meta", {}).get("converted_from") == "coco" else \
+        {int(f["index"]): float(f["time"]) for f in doc["frames"]}
     half_frame = 0.5 / info.fps
 
     meta = {"video": str(video), "boxes": str(boxes), "camera": str(camera), "model": str(model_path),

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 
 def build_dataclass(cls: type, data: Any, where: str, error: type[Exception] = ValueError) -> Any:
@@ -34,3 +37,17 @@ def build_dataclass(cls: type, data: Any, where: str, error: type[Exception] = V
         return cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise error(f"{where}: {e}") from None
+
+
+def read_config_yaml(path: str | Path, kind: str, what: str, error: type[Exception]) -> tuple[Path, Any]:
+    """(resolved path, parsed YAML) of a config file; a bare name like ``lite`` means
+    ``configs/<kind>/lite.yaml``. Unreadable files raise ``error`` naming the file and ``what`` it is."""
+    from surftrack.paths import configs_dir
+
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = configs_dir() / kind / f"{path}.yaml"
+    try:
+        return p, yaml.safe_load(p.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise error(f"{p}: cannot read {what}: {e}") from None

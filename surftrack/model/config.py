@@ -8,9 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from surftrack.configio import build_dataclass
+from surftrack.configio import build_dataclass, read_config_yaml
 
 
 class TrainConfigError(ValueError):
@@ -96,15 +94,7 @@ class TrainConfig:
 
 def load_train_config(path: str | Path) -> TrainConfig:
     """Load ``path`` (YAML); a bare name like ``lite`` means ``configs/train/lite.yaml``."""
-    from surftrack.paths import configs_dir
-
-    p = Path(path)
-    if not p.suffix and not p.exists():
-        p = configs_dir() / "train" / f"{path}.yaml"
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except (OSError, yaml.YAMLError) as e:
-        raise TrainConfigError(f"{p}: cannot read training config: {e}") from None
+    p, data = read_config_yaml(path, "train", "training config", TrainConfigError)
     cfg = build_dataclass(TrainConfig, data, str(p), TrainConfigError)
     if cfg.data.mask_mode not in ("amodal", "modal"):
         raise TrainConfigError(f"{p}: data.mask_mode must be 'amodal' or 'modal', got {cfg.data.mask_mode!r}")

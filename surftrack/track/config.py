@@ -7,9 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
-from surftrack.configio import build_dataclass
+from surftrack.configio import build_dataclass, read_config_yaml
 from surftrack.track.kalman import KalmanConfig
 
 
@@ -90,13 +88,6 @@ class TrackConfig:
 def load_track_config(path: str | Path | None = None) -> TrackConfig:
     """Load ``path`` (YAML; a bare name like ``default`` means ``configs/track/default.yaml``; None = the
     default file)."""
-    from surftrack.paths import configs_dir
-
-    p = Path(path) if path is not None else configs_dir() / "track" / "default.yaml"
-    if not p.suffix and not p.exists():
-        p = configs_dir() / "track" / f"{path}.yaml"
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except (OSError, yaml.YAMLError) as e:
-        raise TrackConfigError(f"{p}: cannot read tracking config: {e}") from None
+    p, data = read_config_yaml(path if path is not None else "default", "track", "tracking config",
+                               TrackConfigError)
     return build_dataclass(TrackConfig, data, str(p), TrackConfigError)

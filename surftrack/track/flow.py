@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from surftrack.geometry.transforms import so3_exp, so3_log
+from surftrack.geometry.transforms import rotation_angle_deg, so3_exp
 
 LK_PARAMS = dict(winSize=(21, 21), maxLevel=3,
                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
@@ -225,4 +225,4 @@ def pnp_measurement(pts: TrackPoints, K: np.ndarray, R0: np.ndarray, t0: np.ndar
 
 def pose_distance(R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.ndarray) -> tuple[float, float]:
     """(rotation angle deg, translation distance mm) between two poses."""
-    return float(np.degrees(np.linalg.norm(so3_log(R_a.T @ R_b)))), float(np.linalg.norm(t_a - t_b))
+    return float(rotation_angle_deg(R_a, R_b)), float(np.linalg.norm(t_a - t_b))

@@ -26,7 +26,7 @@ import av
 import cv2
 import numpy as np
 
-from surftrack.synth.detections import detections_document, load_detections, validate_detections
+from surftrack.synth.detections import detections_document, validate_detections
 
 Box = tuple[float, float, float, float]
 
@@ -171,17 +171,17 @@ def _coco_to_det_checked(doc: dict, path: Path, video_size: tuple[int, int]) -> 
         validate_detections(out, str(path))
     except ValueError as e:
         raise InputError(str(e).replace("$.frames", "frame")) from None
-    out["_times_from_video"] = True
     return out
 
 
 def load_boxes(path: str | Path, video_size: tuple[int, int]) -> dict:
-    """A validated detection document (det.json or COCO) for a video of ``video_size`` (W, H)."""
+    """A validated detection document (det.json or COCO) for a video of ``video_size`` (W, H). A COCO file
+    has no frame times: its document says ``meta.converted_from == "coco"`` and its times are 0."""
     path = Path(path)
     doc = _read_json(path, "detection")
     if isinstance(doc, dict) and doc.get("format") == "surftrack-detections":
         try:
-            doc = load_detections(path)
+            validate_detections(doc, source=str(path))
         except ValueError as e:
             raise InputError(str(e)) from None
         if tuple(doc["image_size"]) != tuple(video_size):

@@ -146,7 +146,6 @@ class Tracker:
             mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
             self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
         self.prev_gray: np.ndarray | None = None
-        self.frames = 0
         self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
@@ -324,7 +323,6 @@ class Tracker:
                 self._refresh(tr, gray)
                 tr.info["refresh_ms"] = 1e3 * (time.perf_counter() - t_ref)
         self.prev_gray = gray
-        self.frames += 1
         states = []
         for tr in self.tracks:
             if tr.has_pose:
