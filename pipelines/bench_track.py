@@ -3,6 +3,7 @@ estimation on a synthetic clip with ground truth.
 
     python pipelines/bench_track.py [--model CKPT] [--seconds 30] [--fps 30] [--parts wrist,shaft]
                                     [--clip DIR] [--device cpu|cuda] [--threads N]
+                                    [--keyframe-every N] [--no-kinematic]
 
 Makes (or reuses, with --clip) a 640x512 synthetic clip of the Large Needle Driver crossed by a second tool
 (``surftrack synth-clip``), keeps the boxes of the chosen parts (default: two, wrist and shaft), then:
@@ -10,7 +11,8 @@ Makes (or reuses, with --clip) a 640x512 synthetic clip of the Large Needle Driv
 1. runs the tracker (the main command's code path, MCAP written to a temporary file) and reports the
    tracked-frame cost per part (LK + PnP + Kalman, frames where the part was propagated by flow), the
    point-refresh cost, the estimator cost on keyframes, and end-to-end frames/s (decode, tracking, MCAP);
-2. runs the estimator on every frame with the same boxes (no temporal model);
+2. runs the estimator on every frame with the same boxes (no temporal model; the same instrument-level
+   kinematic fit as the tracker's unless ``--no-kinematic``);
 3. prints both against the ground truth side by side: ADD-10 (SurgRIPE diameter, share of frames where
    the part is visible; a frame without a pose counts as a miss), RE / TE medians, jitter (mean
    frame-to-frame pose change minus the ground truth's).
@@ -53,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, help="torch intra-op threads")
     ap.add_argument("--keyframe-every", type=int)
+    ap.add_argument("--no-kinematic", action="store_true",
+                    help="leave per-part poses as estimated (no instrument-level kinematic fit), in both runs")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -61,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.pose import PoseEstimator
+    from surftrack.pose.kinematic import KinematicConfig, apply_kinematics
     from surftrack.synth.clip import ClipConfig, make_clip
     from surftrack.synth.video import read_video_frames
     from surftrack.track import PartState, load_track_config
@@ -78,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_track_config()
     if args.keyframe_every:
         cfg = cfg.replace(keyframe_every=args.keyframe_every)
+    if args.no_kinematic:
+        cfg = cfg.replace(kinematic=False)
     gt = ClipGroundTruth(clip / "gt.json")
 
     # 1. tracking
@@ -111,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for s in match_parts(det, model, str(boxes))[0]:
         specs[s.track_id] = s
+    kin = KinematicConfig(cfg.kinematic_anchor, cfg.kinematic_anchor_weight) if cfg.kinematic else None
     score_est = TrackScore(gt)
     t0 = time.perf_counter()
     n = 0
@@ -121,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
                 best[d["part_id"]] = (tuple(d["bbox"]), d["score"])
         pids = sorted(best)
         res = est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K) if pids else []
+        if kin is not None:
+            res = apply_kinematics(res, [specs[p].instance for p in pids], model.parts, kin)
         got = {p: r for p, r in zip(pids, res) if r.ok}
         states = [PartState(s, "keyframe" if p in got else "lost", 1.0 if p in got else 0.0,
                             got[p].R if p in got else None, got[p].t if p in got else None, None)
@@ -131,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     est_summary = score_est.summary()
 
     dev = torch.cuda.get_device_name(0) if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
-    print(f"\nmodel {model_path}, preset {cfg.preset}, keyframe every {cfg.keyframe_every} frames, device {dev}")
+    print(f"\nmodel {model_path}, preset {cfg.preset}, keyframe every {cfg.keyframe_every} frames, "
+          f"kinematic fit {'on' if cfg.kinematic else 'off'}, device {dev}")
     print(f"frames: {run['frames']}; tracking end to end (decode, tracker, MCAP) {run['fps']:.1f} frames/s, "
           f"the tracker alone {run['track_ms_per_frame']:.1f} ms/frame; per-frame estimation (decode, estimator) "
           f"{n / est_wall:.2f} frames/s = {1e3 * est_wall / n:.1f} ms/frame -> tracking "

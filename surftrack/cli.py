@@ -128,10 +128,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if not 0.0 < args.occlusion_threshold <= 1.0:
         raise CLIError(f"--occlusion-threshold must be in (0, 1], got {args.occlusion_threshold}")
     r = evaluate(args.model, args.data, split=args.split, preset=args.preset, max_images=args.max_images,
-                 occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet)
+                 occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet,
+                 kinematic=args.kinematic)
     paths = write_eval_outputs(r, args.out)
     print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
-          f"preset {r['preset']}, {r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
+          f"preset {r['preset']}{', instrument-consistent poses' if args.kinematic else ''}, "
+          f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
     print(markdown_table(r), end="")
     for w in r["warnings"]:
         print(f"warning: {w}")
@@ -243,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
     ev.add_argument("--occlusion-threshold", type=float, default=0.9,
                     help="instances with visib_fract below it count as occluded (default: 0.9)")
+    ev.add_argument("--kinematic", action="store_true",
+                    help="evaluate instrument-consistent poses: each instrument's articulated configuration "
+                         "fitted to its parts' estimates (surftrack.pose.kinematic), as the tracker outputs them")
     ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_eval)

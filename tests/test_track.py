@@ -214,3 +214,14 @@ def test_one_box_per_appearance_is_enough(clip, lnd_parts, tmp_path):
     gone = [s for s, v in zip(statuses, visible) if not v]
     assert not {"tracking", "keyframe"} & set(gone), list(zip(statuses, visible))
     assert gone.count("predicted") <= TrackConfig().max_predicted and gone[-1] == "lost", gone
+
+
+def test_kinematic_settings_are_checked():
+    from surftrack.track import load_track_config
+
+    cfg = load_track_config()
+    assert cfg.kinematic is True and cfg.kinematic_anchor == "wrist" and cfg.kinematic_anchor_weight == 10.0
+    with pytest.raises(ValueError, match="kinematic must be true or false"):
+        TrackConfig(kinematic="yes")
+    with pytest.raises(ValueError, match="kinematic_anchor_weight"):
+        TrackConfig(kinematic_anchor_weight=0.0)

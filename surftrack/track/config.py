@@ -31,6 +31,10 @@ class TrackConfig:
     RMS error <= ``max_rms_px``. Its covariance (from the PnP Jacobian) gets ``flow_floor_mm`` /
     ``flow_floor_deg`` added (model error). Estimator poses are fused with ``est_pos_std_mm`` /
     ``est_rot_std_deg``; an initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+
+    ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
+    replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``
+    weighted ``kinematic_anchor_weight`` times its score.
     """
 
     preset: str = "fast"
@@ -52,6 +56,9 @@ class TrackConfig:
     est_rot_std_deg: float = 5.0
     init_min_inliers: int = 6
     init_min_score: float = 0.0
+    kinematic: bool = True
+    kinematic_anchor: str = "wrist"
+    kinematic_anchor_weight: float = 10.0
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
 
     def __post_init__(self) -> None:
@@ -64,6 +71,8 @@ class TrackConfig:
                 object.__setattr__(self, f.name, kind(v))
             elif kind is str and not isinstance(v, str):
                 raise ValueError(f"{f.name} must be a string, got {v!r}")
+            elif kind is bool and not isinstance(v, bool):
+                raise ValueError(f"{f.name} must be true or false, got {v!r}")
         if self.preset not in ("fast", "accurate"):
             raise ValueError(f"preset must be 'fast' or 'accurate', got {self.preset!r}")
         if self.keyframe_every < 1:
@@ -75,6 +84,8 @@ class TrackConfig:
         for name in ("max_points", "refresh_every", "max_predicted"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.kinematic_anchor_weight <= 0:
+            raise ValueError(f"kinematic_anchor_weight must be > 0, got {self.kinematic_anchor_weight}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
 

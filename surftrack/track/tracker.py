@@ -13,7 +13,10 @@ cadence, after ``max_predicted`` frames without a measurement, when the filter's
 (``PoseKalman.lost``) or when a detection box disagrees with the part's projected box. A tracked part
 hands its pose to the estimator as a prior, so a keyframe never replaces a pose that explains the image
 better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
-appearance is enough. All parts needing the estimator in a frame share one batched call.
+appearance is enough. All parts needing the estimator in a frame share one batched call, and the poses
+it returns for the parts of one instrument are made consistent with the instrument's kinematics
+(``TrackConfig.kinematic``; :mod:`surftrack.pose.kinematic`): a part the fit moves by more than the
+estimator's noise is re-initialised there, since its anchor part is far more reliable than its own flow.
 """
 
 from __future__ import annotations
@@ -27,9 +30,10 @@ import numpy as np
 import trimesh
 
 from surftrack.pose import PoseEstimator
+from surftrack.pose.kinematic import KinematicConfig, apply_kinematics
 from surftrack.track.config import TrackConfig
-from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, project, track_points,
-                                  visible_points)
+from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, project,
+                                  track_points, visible_points)
 from surftrack.track.kalman import PoseKalman
 
 Box = tuple[float, float, float, float]
@@ -147,6 +151,8 @@ class Tracker:
             self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
         self.prev_gray: np.ndarray | None = None
         self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
+        self._kinematic = (KinematicConfig(self.cfg.kinematic_anchor, self.cfg.kinematic_anchor_weight)
+                           if self.cfg.kinematic else None)
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
     # ------------------------------------------------------------------ helpers
@@ -159,6 +165,14 @@ class Tracker:
             if box_iou(best[0], pbox) > 0.0:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
+
+    def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
+        estimator's noise (then the fitted pose replaces the track; otherwise it is an ordinary keyframe)."""
+        if not res.counts.get("kinematic"):
+            return False
+        dr, dt = pose_distance(res.R, res.t, *prior)
+        return dr > self.cfg.est_rot_std_deg or dt > self.cfg.est_pos_std_mm
 
     def _posed(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Poses of every part with one (all instruments: a crossing tool hides what is behind it)."""
@@ -275,6 +289,9 @@ class Tracker:
             t_est = time.perf_counter()
             results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
                                               priors=[p for _, _, p, _ in requests])
+            if self._kinematic is not None:
+                results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
+                                           self.estimator.model.parts, self._kinematic)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
@@ -284,10 +301,15 @@ class Tracker:
                 if good:
                     tr.unseen = 0
                 if tr.has_pose and good:
-                    if res.counts.get("prior_won"):
+                    if res.counts.get("prior_won") and not self._moved(res, prior):
                         # the tracked pose explains the image best: a confirmation, not a new measurement
                         # (fusing the filter's own pose again would shrink its covariance for nothing)
                         tr.status, tr.confidence = "keyframe", max(conf, tr.confidence)
+                    elif self._moved(res, prior):
+                        # placed by the instrument's kinematics from its anchor part, which the estimator
+                        # gets right far more often than flow keeps this part right: take it as it is
+                        tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                        tr.status, tr.confidence = "keyframe", conf
                     else:
                         if not tr.kf.update(res.R, res.t, self._est_cov):
                             tr.kf.init(res.R, res.t, time_s, self._est_cov)  # scored better than the track

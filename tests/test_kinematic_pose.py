@@ -1,0 +1,121 @@
+"""Instrument-consistent poses (surftrack.pose.kinematic): a wrong shaft roll and displaced jaws are
+corrected from the wrist; groups, single parts, unknown instruments and foreign meshes are left alone."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from surftrack.geometry import rotation_angle_deg
+from surftrack.instruments import load_instrument
+from surftrack.instruments.kinematics import JointState
+from surftrack.model.surfsurg6d import PartInfo
+from surftrack.pose.estimator import PartPose
+from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, consistent_poses
+
+Q = JointState(roll=0.4, pitch=0.35, yaw=-0.25, opening=0.5)
+
+
+@pytest.fixture(scope="module")
+def lnd():
+    return load_instrument("large_needle_driver")
+
+
+def _truth(lnd, t=(5.0, -3.0, 110.0), seed=0):
+    base = np.eye(4)
+    base[:3, :3] = Rotation.from_euler("xyz", [120, 20, 10], degrees=True).as_matrix()
+    base[:3, 3] = t
+    return {p: (T[:3, :3], T[:3, 3]) for p, T in lnd.forward(base, Q).items()}
+
+
+def _corrupt(truth, seed=0):
+    """Shaft rolled 50 deg about its own axis (the ambiguity of a near-symmetric part), jaws rotated 12 deg
+    and moved 2.5 mm: what the per-part estimator gets wrong; the wrist is right."""
+    rng = np.random.default_rng(seed)
+    out = dict(truth)
+    R, t = truth["shaft"]
+    out["shaft"] = (R @ Rotation.from_euler("z", 50, degrees=True).as_matrix(), t)
+    for jaw in ("jaw_left", "jaw_right"):
+        R, t = truth[jaw]
+        axis = rng.normal(size=3)
+        dR = Rotation.from_rotvec(np.radians(12) * axis / np.linalg.norm(axis)).as_matrix()
+        d = rng.normal(size=3)
+        out[jaw] = (dR @ R, t + 2.5 * d / np.linalg.norm(d))
+    return out
+
+
+def test_wrong_roll_and_jaws_are_corrected_from_the_wrist(lnd):
+    truth = _truth(lnd)
+    bad = _corrupt(truth)
+    obs = {p: (R, t, 1.0) for p, (R, t) in bad.items()}
+    fitted, fit = consistent_poses(lnd, obs)
+    assert set(fitted) == set(lnd.part_names)
+    assert rotation_angle_deg(fitted["shaft"][0], truth["shaft"][0]) < 1.0  # the roll comes from the wrist
+    assert rotation_angle_deg(fitted["wrist"][0], truth["wrist"][0]) < 1.0
+    assert np.linalg.norm(fitted["wrist"][1] - truth["wrist"][1]) < 0.3
+    for jaw in ("jaw_left", "jaw_right"):  # placed by the wrist; only their opening comes from themselves
+        assert np.linalg.norm(fitted[jaw][1] - truth[jaw][1]) < 1.0
+        assert rotation_angle_deg(fitted[jaw][0], truth[jaw][0]) < rotation_angle_deg(bad[jaw][0], truth[jaw][0])
+    assert abs(fit.joints.pitch - Q.pitch) < np.radians(2.0)  # (roll is relative to the fit's own zero-roll base)
+    # Without the anchor weight the wrong shaft pulls the wrist along: the weight is what keeps it.
+    loose, _ = consistent_poses(lnd, obs, KinematicConfig(anchor_weight=1.0))
+    assert (rotation_angle_deg(loose["wrist"][0], truth["wrist"][0])
+            > rotation_angle_deg(fitted["wrist"][0], truth["wrist"][0]))
+
+
+def _part_poses(lnd, poses, instrument="large_needle_driver", score=1.0, ok=True):
+    ids = {p: i + 1 for i, p in enumerate(lnd.part_names)}
+    return [PartPose(ids[p], p, instrument, R.copy(), t.copy(), score, 50, ok, {}, (0, 0, 1, 1), np.eye(3))
+            for p, (R, t) in poses.items()]
+
+
+def _infos(lnd):
+    return [PartInfo.from_part(i + 1, "large_needle_driver", lnd.parts[p]) for i, p in enumerate(lnd.part_names)]
+
+
+def test_apply_kinematics_per_instance(lnd):
+    a, b = _truth(lnd), _truth(lnd, t=(-30.0, 10.0, 140.0))
+    results = _part_poses(lnd, _corrupt(a)) + _part_poses(lnd, _corrupt(b, seed=1))
+    groups = [0] * 4 + [1] * 4
+    out = apply_kinematics(results, groups, _infos(lnd))
+    assert len(out) == 8
+    for r, o in zip(results, out):  # the anchor (wrist) keeps its estimate, the others are fitted
+        assert (o is r) if r.part == "wrist" else (o.counts.get("kinematic") == 1)
+    for res, truth in ((out[:4], a), (out[4:], b)):  # each instance fitted to its own parts
+        shaft = next(r for r in res if r.part == "shaft")
+        assert rotation_angle_deg(shaft.R, truth["shaft"][0]) < 1.0
+    assert results[0].counts == {}  # inputs untouched
+    # A failed part gets its instrument's fitted pose (its position at the wrist; its direction needs the
+    # wrist pitch, which nothing observed fixes); the others are not pulled by its placeholder.
+    res = _part_poses(lnd, _corrupt(a))
+    res[0].ok = False
+    res[0].R, res[0].t = np.eye(3), np.zeros(3)
+    out = apply_kinematics(res, [0] * 4, _infos(lnd))
+    assert out[0].counts["kinematic"] == 1 and not out[0].ok
+    assert np.linalg.norm(out[0].t - a["shaft"][1]) < 1.0
+    assert rotation_angle_deg(out[1].R, a["wrist"][0]) < 1.0
+
+
+def test_apply_kinematics_leaves_what_it_cannot_fit(lnd):
+    bad = _corrupt(_truth(lnd))
+    one = _part_poses(lnd, {"shaft": bad["shaft"]})
+    assert apply_kinematics(one, [0], _infos(lnd))[0] is one[0]  # a lone part: nothing to be consistent with
+    split = _part_poses(lnd, bad)
+    out = apply_kinematics(split, [0, 1, 2, 3], _infos(lnd))  # four instances of one part each
+    assert all(o is s for o, s in zip(out, split))
+    unknown = _part_poses(lnd, bad, instrument="my_custom_tool")
+    assert all(o is s for o, s in zip(apply_kinematics(unknown, [0] * 4, _infos(lnd)), unknown))
+    foreign = _infos(lnd)
+    foreign[1].mesh_sha256 = "0" * 64  # the model was trained on another wrist mesh
+    with pytest.warns(UserWarning, match="differ"):
+        out = apply_kinematics(split, [0] * 4, foreign)
+    assert all(o is s for o, s in zip(out, split))
+    with pytest.raises(ValueError, match="one group key per result"):
+        apply_kinematics(split, [0], _infos(lnd))
+
+
+def test_kinematic_config_checks():
+    with pytest.raises(ValueError, match="anchor_weight"):
+        KinematicConfig(anchor_weight=0.0)
+    c = KinematicConfig()
+    assert c.weight("wrist", 0.5) == pytest.approx(5.0) and c.weight("shaft", -1.0) == pytest.approx(0.05)
+    assert c.weight("shaft", float("nan")) == pytest.approx(0.05)
