@@ -38,7 +38,7 @@ class TrackConfig:
     """
 
     preset: str = "fast"
-    keyframe_every: int = 5
+    keyframe_every: int = 1
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3
