@@ -4,7 +4,8 @@
 :class:`PartPose` per box. Modules: :mod:`.p3p` (batched P3P / 4-point solver), :mod:`.surface` (cached
 surface keys), :mod:`.correspondence` (correspondence distributions on the downsampled grid),
 :mod:`.hypotheses`, :mod:`.scoring`, :mod:`.refine`, :mod:`.solver` (the per-crop pipeline),
-:mod:`.preset`, :mod:`.estimator`, :mod:`.evaluate` (evaluation on a BOP split: metrics, tables, BOP CSV)
+:mod:`.preset`, :mod:`.estimator`, :mod:`.kinematic` (instrument-consistent poses from the part estimates),
+:mod:`.evaluate` (evaluation on a BOP split: metrics, tables, BOP CSV)
 and :mod:`.synthetic` (correspondence fields from rendered object coordinates, for tests and benchmarks).
 """
 
