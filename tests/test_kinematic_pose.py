@@ -10,6 +10,7 @@ from surftrack.instruments import load_instrument
 from surftrack.instruments.kinematics import JointState
 from surftrack.model.surfsurg6d import PartInfo
 from surftrack.pose.estimator import PartPose
+from surftrack.pose import kinematic
 from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, consistent_poses
 
 Q = JointState(roll=0.4, pitch=0.35, yaw=-0.25, opening=0.5)
@@ -84,18 +85,20 @@ def test_apply_kinematics_per_instance(lnd):
         shaft = next(r for r in res if r.part == "shaft")
         assert rotation_angle_deg(shaft.R, truth["shaft"][0]) < 1.0
     assert results[0].counts == {}  # inputs untouched
-    # A failed part gets its instrument's fitted pose (its position at the wrist; its direction needs the
-    # wrist pitch, which nothing observed fixes); the others are not pulled by its placeholder.
+    # A failed estimate stays as it is and does not pull the others.
     res = _part_poses(lnd, _corrupt(a))
     res[0].ok = False
     res[0].R, res[0].t = np.eye(3), np.zeros(3)
     out = apply_kinematics(res, [0] * 4, _infos(lnd))
-    assert out[0].counts["kinematic"] == 1 and not out[0].ok
-    assert np.linalg.norm(out[0].t - a["shaft"][1]) < 1.0
-    assert rotation_angle_deg(out[1].R, a["wrist"][0]) < 1.0
+    assert out[0] is res[0] and out[2].counts["kinematic"] == 1
+    assert np.linalg.norm(out[2].t - a["jaw_left"][1]) < 1.0
+    # Without the anchor (the wrist) nothing is fitted: the others would only follow each other.
+    no_wrist = [r for r in _part_poses(lnd, _corrupt(a)) if r.part != "wrist"]
+    assert all(o is r for o, r in zip(apply_kinematics(no_wrist, [0] * 3, _infos(lnd)), no_wrist))
 
 
-def test_apply_kinematics_leaves_what_it_cannot_fit(lnd):
+def test_apply_kinematics_leaves_what_it_cannot_fit(lnd, monkeypatch):
+    monkeypatch.setattr(kinematic, "_instruments", {})  # warnings are given once per process
     bad = _corrupt(_truth(lnd))
     one = _part_poses(lnd, {"shaft": bad["shaft"]})
     assert apply_kinematics(one, [0], _infos(lnd))[0] is one[0]  # a lone part: nothing to be consistent with
@@ -103,7 +106,9 @@ def test_apply_kinematics_leaves_what_it_cannot_fit(lnd):
     out = apply_kinematics(split, [0, 1, 2, 3], _infos(lnd))  # four instances of one part each
     assert all(o is s for o, s in zip(out, split))
     unknown = _part_poses(lnd, bad, instrument="my_custom_tool")
-    assert all(o is s for o, s in zip(apply_kinematics(unknown, [0] * 4, _infos(lnd)), unknown))
+    with pytest.warns(UserWarning, match="no built-in description"):
+        out = apply_kinematics(unknown, [0] * 4, _infos(lnd))
+    assert all(o is s for o, s in zip(out, unknown))
     foreign = _infos(lnd)
     foreign[1].mesh_sha256 = "0" * 64  # the model was trained on another wrist mesh
     with pytest.warns(UserWarning, match="differ"):

@@ -223,5 +223,6 @@ def test_kinematic_settings_are_checked():
     assert cfg.kinematic is True and cfg.kinematic_anchor == "wrist" and cfg.kinematic_anchor_weight == 10.0
     with pytest.raises(ValueError, match="kinematic must be true or false"):
         TrackConfig(kinematic="yes")
-    with pytest.raises(ValueError, match="kinematic_anchor_weight"):
-        TrackConfig(kinematic_anchor_weight=0.0)
+    for bad in (0.0, float("nan")):
+        with pytest.raises(ValueError, match="kinematic_anchor_weight"):
+            TrackConfig(kinematic_anchor_weight=bad)

@@ -142,6 +142,15 @@ def _model_points(part, max_points: int) -> np.ndarray:
     return v
 
 
+def _instrument_groups(instances: Sequence) -> list:
+    """Instrument-instance key of each ground-truth instance of one image: ``instrument_index`` where the
+    data has it, else one group per image unless an object repeats (then one group per instance: no fit)."""
+    if all("instrument_index" in i.extra for i in instances):
+        return [i.extra["instrument_index"] for i in instances]
+    ids = [i.obj_id for i in instances]
+    return [0] * len(ids) if len(set(ids)) == len(ids) else list(range(len(ids)))
+
+
 def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_images: int | None = None,
              occlusion_threshold: float = 0.9, *, device=None, images_per_batch: int = 4,
              min_visib_fract: float = 0.1, min_px_visib: int = 64, max_points: int = 5000,
@@ -160,7 +169,9 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     :class:`surftrack.pose.kinematic.KinematicConfig`, or True for the defaults): evaluate the
     instrument-consistent poses of :func:`surftrack.pose.kinematic.apply_kinematics` instead of the raw
     per-part ones; the parts of an image are grouped by the ground truth's ``instrument_index`` (our
-    generated data) or, without it, by instrument name. Instances are those kept by
+    generated data). Without it they are grouped by instrument name, which assumes one instance of each
+    instrument per image (as in SurgRIPE); images that repeat an object are then not fitted. Instances
+    are those kept by
     :class:`BopDataset` with ``min_visib_fract`` / ``min_px_visib`` (BOP's 10 % visibility rule by default)
     whose object the model knows (others are counted in ``skipped_unknown_obj``). Raises
     :class:`surftrack.data.DatasetError` (bad data / split / empty selection) and
@@ -231,8 +242,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
         t0 = time.perf_counter()
         poses = est.estimate_batch(imgs, boxes, Ks)
         if kinematic:  # timed with the estimator: it is part of what the tracker outputs
-            poses = [apply_kinematics(pl, [i.extra.get("instrument_index", 0) for i in by_image[k]], est.model.parts,
-                                      kinematic) for k, pl in zip(chunk, poses)]
+            poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic)
+                     for k, pl in zip(chunk, poses)]
         per_image = (time.perf_counter() - t0) / len(chunk)
         for k, plist in zip(chunk, poses):
             image_s.append(per_image)

@@ -61,7 +61,7 @@ _instruments: dict[str, Instrument | None] = {}
 def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None) -> Instrument | None:
     """The built-in instrument ``name`` when its parts' meshes are those the model was trained on
     (``part_hashes``: part name -> mesh SHA-256, from the checkpoint); None (with one warning) when the
-    instrument is unknown or its meshes differ, so no kinematic model applies."""
+    instrument is unknown or its meshes differ, so no kinematic model applies. Cached per process."""
     key = name + "|" + ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))
     if key in _instruments:
         return _instruments[key]
@@ -69,6 +69,8 @@ def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None
     try:
         inst = load_instrument(name)
     except InstrumentError:
+        warnings.warn(f"instrument {name!r} has no built-in description (configs/instruments): its parts keep "
+                      "their per-part poses", stacklevel=2)
         inst = None
     if inst is not None:
         bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]
@@ -101,10 +103,10 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
     ``groups[i]``: the instrument instance ``results[i]`` belongs to (parts of one instrument with the same
     key are fitted together). ``model_parts``: the model's :class:`PartInfo` list (``model.parts``), whose
     mesh hashes must match the instrument description's.
-    The anchor part keeps its own estimate (its fitted pose barely differs, and in a tracker a pulled
-    anchor would feed the pull back as the next frame's prior). Parts whose estimate failed (``ok``
-    False) get the fitted pose too when other parts of their instrument were fitted. Groups of one part,
-    and instruments without a kinematic model, are left as they are. Replaced results carry
+    A group is fitted only when its anchor part (``config.anchor``) was estimated; the anchor keeps its
+    own estimate (its fitted pose barely differs, and in a tracker a pulled anchor would feed the pull
+    back as the next frame's prior). Failed estimates (``ok`` False), groups of one part, groups that
+    repeat a part and instruments without a kinematic model are left as they are. Replaced results carry
     ``counts["kinematic"] = 1``."""
     if len(groups) != len(results):
         raise ValueError(f"need one group key per result, got {len(groups)} for {len(results)}")
@@ -124,15 +126,15 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
         if inst is None:
             continue
         obs = {results[i].part: (results[i].R, results[i].t, results[i].score) for i in idx if results[i].ok}
-        if len(obs) < 2:
-            continue
+        if len(obs) < 2 or (cfg.anchor in inst.parts and cfg.anchor not in obs):
+            continue  # without its anchor the fit would place the parts relative to less reliable ones
         try:
             fitted, _ = consistent_poses(inst, obs, cfg)
         except ValueError:
             continue
         for i in idx:
-            if results[i].part == cfg.anchor and results[i].ok:
-                continue  # the anchor keeps its estimate: the fit places the others relative to it
+            if results[i].part == cfg.anchor or not results[i].ok:
+                continue  # the anchor keeps its estimate; a failed estimate stays a failure
             R, t = fitted[results[i].part]
             out[i] = dataclasses.replace(results[i], R=R, t=t, counts={**results[i].counts, "kinematic": 1})
     return out

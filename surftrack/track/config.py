@@ -4,6 +4,7 @@ Kalman filter's noise. Defaults are the values of ``configs/track/default.yaml``
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -84,7 +85,7 @@ class TrackConfig:
         for name in ("max_points", "refresh_every", "max_predicted"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.kinematic_anchor_weight <= 0:
+        if not (math.isfinite(self.kinematic_anchor_weight) and self.kinematic_anchor_weight > 0):
             raise ValueError(f"kinematic_anchor_weight must be > 0, got {self.kinematic_anchor_weight}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
