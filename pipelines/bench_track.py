@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.pose import PoseEstimator
-    from surftrack.pose.kinematic import KinematicConfig, apply_kinematics
+    from surftrack.pose.kinematic import apply_kinematics
     from surftrack.synth.clip import ClipConfig, make_clip
     from surftrack.synth.video import read_video_frames
     from surftrack.track import PartState, load_track_config
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for s in match_parts(det, model, str(boxes))[0]:
         specs[s.track_id] = s
-    kin = KinematicConfig(cfg.kinematic_anchor, cfg.kinematic_anchor_weight) if cfg.kinematic else None
+    kin = cfg.kinematic_config()
     score_est = TrackScore(gt)
     t0 = time.perf_counter()
     n = 0

@@ -95,11 +95,12 @@ def test_evaluate_writes_json_table_csv_png(tiny, tmp_path):
 
 
 class _Oracle(PoseEstimator):
-    """Returns the ground truth shifted by a known translation per object: RE 0, TE = ADD = shift."""
+    """Returns the ground truth changed by ``perturb(obj_id, part name, R, t) -> (R, t)``."""
 
-    def __init__(self, ckpt, gt, shift):
+    def __init__(self, ckpt, gt, perturb):
         super().__init__(ckpt, "fast", device="cpu")
-        self.gt, self.shift = gt, shift
+        self.gt, self.perturb = gt, perturb
+        self.names = {p.obj_id: (p.name, p.instrument) for p in self.model.parts}
 
     def estimate_batch(self, images, boxes_per_image, Ks):
         out = []
@@ -107,8 +108,9 @@ class _Oracle(PoseEstimator):
             poses = []
             for obj_id, box in boxes:
                 inst = self.gt[(obj_id, tuple(box))]
-                t = inst.t + np.array([0.0, 0.0, self.shift[obj_id]])
-                poses.append(PartPose(obj_id, "p", "i", inst.R.copy(), t, 1.0, 10, True,
+                name, instrument = self.names[obj_id]
+                R, t = self.perturb(obj_id, name, inst.R.copy(), inst.t.copy())
+                poses.append(PartPose(obj_id, name, instrument, R, t, 1.0, 10, True,
                                       {"forward": 1.0, "total": 1.0}, (0, 0, 1, 1), np.eye(3), i))
             out.append(poses)
         return out
@@ -123,7 +125,9 @@ def test_aggregation_with_injected_poses(tiny):
     # diameter and fails under BOP's.
     d = {o: (m.diameter_max_pairwise, m.diameter_bbox_diagonal) for o, m in bop.models.items()}
     shift = {o: 0.05 * (a + b) for o, (a, b) in d.items()}
-    r = evaluate(_Oracle(ckpt, gt, shift), root, split="train", occlusion_threshold=0.9)
+    # RE 0, TE = ADD = shift
+    oracle = _Oracle(ckpt, gt, lambda o, name, R, t: (R, t + np.array([0.0, 0.0, shift[o]])))
+    r = evaluate(oracle, root, split="train", occlusion_threshold=0.9)
     assert r["n_images"] == 3 and r["n_instances"] == len(bop.instances)
     for label, p in r["parts"].items():
         o = p["obj_id"]
@@ -220,35 +224,14 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
     assert all(p.is_file() for p in (out, out.with_suffix(".md"), out.with_suffix(".png")))
 
 
-class _RolledShaft(PoseEstimator):
-    """Ground-truth poses except the shaft, turned 50 deg about its own axis (its near-symmetry)."""
-
-    def __init__(self, ckpt, gt):
-        super().__init__(ckpt, "fast", device="cpu")
-        self.gt = gt
-        self.names = {p.obj_id: (p.name, p.instrument) for p in self.model.parts}
-
-    def estimate_batch(self, images, boxes_per_image, Ks):
-        from scipy.spatial.transform import Rotation
-
-        out = []
-        for i, boxes in enumerate(boxes_per_image):
-            poses = []
-            for obj_id, box in boxes:
-                inst = self.gt[(obj_id, tuple(box))]
-                name, instrument = self.names[obj_id]
-                R = inst.R @ Rotation.from_euler("z", 50, degrees=True).as_matrix() if name == "shaft" else inst.R
-                poses.append(PartPose(obj_id, name, instrument, R.copy(), inst.t.copy(), 1.0, 10, True,
-                                      {"total": 1.0}, (0, 0, 1, 1), np.eye(3), i))
-            out.append(poses)
-        return out
-
-
 def test_kinematic_evaluation_fixes_the_shaft_roll(tiny):
     root, ckpt = tiny
     bop = BopDataset(root, "train")
     gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
-    est = _RolledShaft(ckpt, gt)
+    from scipy.spatial.transform import Rotation
+
+    roll = Rotation.from_euler("z", 50, degrees=True).as_matrix()  # the shaft's near-symmetry
+    est = _Oracle(ckpt, gt, lambda o, name, R, t: (R @ roll if name == "shaft" else R, t))
     raw = evaluate(est, root, split="train")
     kin = evaluate(est, root, split="train", kinematic=True)
     assert raw["kinematic"] is None and kin["kinematic"]["anchor"] == "wrist"

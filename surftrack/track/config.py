@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from surftrack.configio import build_dataclass, read_config_yaml
+from surftrack.pose.kinematic import KinematicConfig
 from surftrack.track.kalman import KalmanConfig
 
 
@@ -89,6 +90,11 @@ class TrackConfig:
             raise ValueError(f"kinematic_anchor_weight must be > 0, got {self.kinematic_anchor_weight}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
+
+    def kinematic_config(self) -> KinematicConfig | None:
+        """The instrument-consistency settings for :func:`surftrack.pose.kinematic.apply_kinematics`, or
+        None when ``kinematic`` is off."""
+        return KinematicConfig(self.kinematic_anchor, self.kinematic_anchor_weight) if self.kinematic else None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

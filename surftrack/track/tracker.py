@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 
 from surftrack.pose import PoseEstimator
-from surftrack.pose.kinematic import KinematicConfig, apply_kinematics
+from surftrack.pose.kinematic import apply_kinematics
 from surftrack.track.config import TrackConfig
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, project,
                                   track_points, visible_points)
@@ -151,8 +151,7 @@ class Tracker:
             self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
         self.prev_gray: np.ndarray | None = None
         self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
-        self._kinematic = (KinematicConfig(self.cfg.kinematic_anchor, self.cfg.kinematic_anchor_weight)
-                           if self.cfg.kinematic else None)
+        self._kinematic = self.cfg.kinematic_config()
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
     # ------------------------------------------------------------------ helpers
@@ -301,11 +300,12 @@ class Tracker:
                 if good:
                     tr.unseen = 0
                 if tr.has_pose and good:
-                    if res.counts.get("prior_won") and not self._moved(res, prior):
+                    moved = self._moved(res, prior)
+                    if res.counts.get("prior_won") and not moved:
                         # the tracked pose explains the image best: a confirmation, not a new measurement
                         # (fusing the filter's own pose again would shrink its covariance for nothing)
                         tr.status, tr.confidence = "keyframe", max(conf, tr.confidence)
-                    elif self._moved(res, prior):
+                    elif moved:
                         # placed by the instrument's kinematics from its anchor part, which the estimator
                         # gets right far more often than flow keeps this part right: take it as it is
                         tr.kf.init(res.R, res.t, time_s, self._est_cov)
