@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
-from surftrack.pose.kinematic import KinematicConfig, apply_kinematics
+from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, check_anchor
 
 __all__ = ["GROUPS", "evaluate", "group_stats", "markdown_table", "pose_errors", "summarize", "write_eval_outputs"]
 
@@ -188,6 +188,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(checkpoint, preset, device=device)
     if kinematic is True:
         kinematic = KinematicConfig()
+    if kinematic:
+        check_anchor(kinematic, est.model.parts)
     bop = BopDataset(data_dir, split, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib)
     warn: list[str] = []
 

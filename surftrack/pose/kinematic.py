@@ -55,6 +55,14 @@ class KinematicConfig:
         return w * (self.anchor_weight if part == self.anchor else 1.0)
 
 
+def check_anchor(config: KinematicConfig, model_parts: Sequence) -> None:
+    """Raise ``ValueError`` when ``config.anchor`` names no part of the model (``model.parts``): a misspelt
+    anchor would otherwise silently fit every part with equal trust and move the anchor too."""
+    names = sorted({info.name for info in model_parts})
+    if config.anchor not in names:
+        raise ValueError(f"kinematic anchor {config.anchor!r} is not a part of the model (parts: {', '.join(names)})")
+
+
 _instruments: dict[str, Instrument | None] = {}
 
 

@@ -30,8 +30,8 @@ import numpy as np
 import trimesh
 
 from surftrack.pose import PoseEstimator
-from surftrack.pose.kinematic import apply_kinematics
-from surftrack.track.config import TrackConfig
+from surftrack.pose.kinematic import apply_kinematics, check_anchor
+from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, project,
                                   track_points, visible_points)
 from surftrack.track.kalman import PoseKalman
@@ -152,6 +152,11 @@ class Tracker:
         self.prev_gray: np.ndarray | None = None
         self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
         self._kinematic = self.cfg.kinematic_config()
+        if self._kinematic is not None:
+            try:
+                check_anchor(self._kinematic, estimator.model.parts)
+            except ValueError as e:
+                raise TrackConfigError(f"kinematic_anchor: {e}") from None
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
     # ------------------------------------------------------------------ helpers
