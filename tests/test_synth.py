@@ -202,6 +202,28 @@ def test_bad_config_is_reported_with_its_file(tmp_path):
         load_synth_config(bad)
 
 
+def test_roll_zero_sets_which_way_the_jaws_open():
+    """At zero roll the jaws open along the base x axis: towards the camera's viewing direction with
+    ``roll_zero: view``, across the view (both jaws at one depth) with ``across``; the shaft stays put."""
+    from surftrack.instruments import rcm_base_pose
+    from surftrack.synth.sampling import roll_reference
+
+    view, across = (load_synth_config(overrides={"pose": {"roll_zero": z}}).pose for z in ("view", "across"))
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        theta, phi = np.radians(rng.uniform(35, 75)), rng.uniform(0, 2 * np.pi)
+        shaft = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+        pitch_point = rng.normal(size=3) * 10 + [0, 0, 100]
+        Bv = rcm_base_pose(pitch_point - 80 * shaft, pitch_point, roll_reference(view, shaft))
+        Ba = rcm_base_pose(pitch_point - 80 * shaft, pitch_point, roll_reference(across, shaft))
+        assert np.allclose(Bv[:3, 2], shaft) and np.allclose(Ba[:3, 2], shaft)
+        assert Bv[2, 0] == pytest.approx(np.sin(theta))  # x as far towards +z as a vector normal to the shaft gets
+        assert Ba[2, 0] == pytest.approx(0.0, abs=1e-12)
+    bad = {"pose": {"roll_zero": "sideways"}}
+    with pytest.raises(ConfigError, match="roll_zero must be one of view, across"):
+        load_synth_config(overrides=bad)
+
+
 def test_resume_refuses_another_seed_or_config(dataset):
     root, cfg, _ = dataset
     before = _digest(root)
@@ -211,6 +233,21 @@ def test_resume_refuses_another_seed_or_config(dataset):
     with pytest.raises(ConfigError, match="another seed or configuration"):
         generate_dataset(root, other, N + 2, seed=5, workers=1, progress=False)
     assert _digest(root) == before
+
+
+def test_resume_accepts_a_card_from_before_a_config_key_existed(dataset, tmp_path):
+    """A dataset made before a key was added (its card lacks it) resumes under that key's default,
+    which is the behaviour it was made with; a non-default value is still refused."""
+    from surftrack.synth.generate import _check_resume
+
+    root, cfg, _ = dataset
+    card = json.loads((root / "dataset_card.json").read_text())
+    del card["config"]["pose"]["roll_zero"]
+    (tmp_path / "dataset_card.json").write_text(json.dumps(card))
+    _check_resume(tmp_path, cfg, 5)
+    across = load_synth_config(overrides={**SMALL, "pose": {**cfg.to_dict()["pose"], "roll_zero": "across"}})
+    with pytest.raises(ConfigError, match="another seed or configuration"):
+        _check_resume(tmp_path, across, 5)
 
 
 def test_instrument_aliases_and_duplicates(tmp_path):

@@ -49,6 +49,7 @@ class TissueCfg:
 
 
 TISSUE_SOURCES = ("procedural", "mesh", "images")
+ROLL_ZEROS = ("view", "across")  # see surftrack.synth.sampling.roll_reference
 MESH_UNITS = ("mm", "cm", "m")
 
 
@@ -61,6 +62,7 @@ class PoseCfg:
     pitch_deg: Range = (0.0, 60.0)
     yaw_deg: Range = (0.0, 60.0)
     wrist_sign: str = "random"
+    roll_zero: str = "view"
     opening_deg: Range = (0.0, 60.0)
     min_depth_mm: float = 20.0
     second_target_mm: float = 25.0
@@ -117,6 +119,7 @@ class SynthConfig:
             (0.0 <= self.two_instruments_prob <= 1.0, "two_instruments_prob must be in [0, 1]"),
             (0.0 < self.rejection.min_visib_fract <= 1.0, "rejection.min_visib_fract must be in (0, 1]"),
             (self.pose.wrist_sign in ("random", "positive"), "pose.wrist_sign must be 'random' or 'positive'"),
+            (self.pose.roll_zero in ROLL_ZEROS, f"pose.roll_zero must be one of {', '.join(ROLL_ZEROS)}"),
             (self.output.rgb_format in ("jpg", "png"), "output.rgb_format must be 'jpg' or 'png'"),
             (self.output.images_per_scene > 0 and self.tissue.images_per_tissue > 0, "image counts must be > 0"),
             (self.output.images_per_scene % self.tissue.images_per_tissue == 0,

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack import __version__
+from surftrack.configio import build_dataclass
 from surftrack.geometry import PinholeCamera
 from surftrack.instruments import Instrument, assign_obj_ids, export_bop_models, load_instrument
 from surftrack.render import Renderer, add_instrument, gl_context, worker_context
@@ -201,7 +202,12 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
     if not card.is_file():
         return
     old = json.loads(card.read_text())
-    if old.get("seed") != seed or old.get("config") != json.loads(json.dumps(cfg.to_dict())):
+    made = old.get("config")
+    try:  # keys added to the config since the dataset was made take their defaults (the behaviour then)
+        made = build_dataclass(SynthConfig, dict(made or {}), str(card), ConfigError).to_dict()
+    except (ConfigError, TypeError):
+        pass
+    if old.get("seed") != seed or json.loads(json.dumps(made)) != json.loads(json.dumps(cfg.to_dict())):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
 
