@@ -219,6 +219,23 @@ def test_roll_zero_sets_which_way_the_jaws_open():
         assert np.allclose(Bv[:3, 2], shaft) and np.allclose(Ba[:3, 2], shaft)
         assert Bv[2, 0] == pytest.approx(np.sin(theta))  # x as far towards +z as a vector normal to the shaft gets
         assert Ba[2, 0] == pytest.approx(0.0, abs=1e-12)
+    # and the sampler uses it
+    from surftrack.instruments import load_instrument
+    from surftrack.synth.config import TissueCfg
+    from surftrack.synth.sampling import sample_camera, sample_instrument, sample_tissue_pose
+    from surftrack.synth.tissue import procedural_tissue
+
+    cfg = load_synth_config()
+    lnd, tissue = load_instrument("lnd"), procedural_tissue(rng)
+    for pose_cfg, expect_zero in ((view, False), (across, True)):
+        got = 0
+        for _ in range(40):
+            cam = sample_camera(cfg.image, cfg.camera, rng)
+            s = sample_instrument(lnd, pose_cfg, rng, cam, tissue, sample_tissue_pose(TissueCfg(), rng))
+            if s is not None:
+                got += 1
+                assert (abs(s.base[2, 0]) < 1e-9) == expect_zero
+        assert got >= 5
     bad = {"pose": {"roll_zero": "sideways"}}
     with pytest.raises(ConfigError, match="roll_zero must be one of view, across"):
         load_synth_config(overrides=bad)

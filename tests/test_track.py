@@ -117,8 +117,8 @@ class _GroundTruthEstimator:
 def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt, kinematic):
     """A shaft track rolled 15 deg about its axis, re-estimated with the same wrong roll: with the
     kinematic fit the tracker takes the shaft pose the wrist and jaws imply as it is (the
-    're-initialised' branch; fused with the filter it would land half-way), without it the wrong roll
-    stays."""
+    're-initialised' branch; fused with the filter's confident track it would stay near the wrong roll),
+    without it the wrong roll stays."""
     from surftrack.model import load_checkpoint
 
     model = load_checkpoint(tiny_ckpt)[0]
@@ -155,6 +155,9 @@ def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):
     with pytest.raises(TrackConfigError, match="kinematic anchor 'wirst' is not a part of the model"):
         Tracker(est, np.eye(3), (64, 64), [], TrackConfig(kinematic_anchor="wirst"))
     Tracker(est, np.eye(3), (64, 64), [], TrackConfig(kinematic_anchor="wirst", kinematic=False))  # unused: fine
+    Tracker(est, np.eye(3), (64, 64), [], TrackConfig(kinematic_anchor="jaw_left"))
+    est.model.parts = [p for p in est.model.parts if p.name != "wrist"]  # a tool without a wrist: the default
+    Tracker(est, np.eye(3), (64, 64), [], TrackConfig())                 # anchor is simply absent
 
 
 def test_box_helpers():

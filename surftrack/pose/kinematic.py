@@ -56,11 +56,14 @@ class KinematicConfig:
 
 
 def check_anchor(config: KinematicConfig, model_parts: Sequence) -> None:
-    """Raise ``ValueError`` when ``config.anchor`` names no part of the model (``model.parts``): a misspelt
-    anchor would otherwise silently fit every part with equal trust and move the anchor too."""
+    """Raise ``ValueError`` when an anchor other than the default names no part of the model
+    (``model.parts``): a misspelt anchor would otherwise silently fit every part with equal trust and move
+    the anchor too. The default anchor is not checked: an instrument without a part of that name is fitted
+    with equal trust, as :func:`apply_kinematics` says."""
     names = sorted({info.name for info in model_parts})
-    if config.anchor not in names:
-        raise ValueError(f"kinematic anchor {config.anchor!r} is not a part of the model (parts: {', '.join(names)})")
+    if config.anchor != KinematicConfig.anchor and config.anchor not in names:
+        raise ValueError(f"kinematic anchor {config.anchor!r} is not a part of the model (parts: "
+                         f"{', '.join(names)}); name one of them, or turn the kinematic fit off")
 
 
 _instruments: dict[str, Instrument | None] = {}

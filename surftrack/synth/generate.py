@@ -203,10 +203,13 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
         return
     old = json.loads(card.read_text())
     made = old.get("config")
-    try:  # keys added to the config since the dataset was made take their defaults (the behaviour then)
-        made = build_dataclass(SynthConfig, dict(made or {}), str(card), ConfigError).to_dict()
-    except (ConfigError, TypeError):
-        pass
+    if isinstance(made, dict) and made:
+        # Keys added to the config since the dataset was made take their defaults. Rule for new keys:
+        # the default must reproduce the behaviour from before the key existed.
+        try:
+            made = build_dataclass(SynthConfig, dict(made), str(card), ConfigError).to_dict()
+        except (ConfigError, TypeError, ValueError):
+            pass
     if old.get("seed") != seed or json.loads(json.dumps(made)) != json.loads(json.dumps(cfg.to_dict())):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
@@ -325,8 +328,8 @@ def write_dataset_card(out: Path, cfg: SynthConfig, seed: int, instruments: list
                          "rejections": report.rejections, "seconds": round(report.seconds, 1)})
     all_runs = card["runs"]
     card.update({
-        "format": "BOP (bop_toolkit layout); extra scene_gt keys: instrument, instrument_index, part, joints_deg, "
-                  "trocar_mm, tip_to_tissue_mm; normal/<im>.png = uint8 RGB (n + 1) / 2 * 255, camera frame",
+        "format": "BOP (bop_toolkit layout); extra scene_gt keys: instrument, instrument_index, part, joints_deg "
+                  "(roll from the zero of config.pose.roll_zero), trocar_mm, tip_to_tissue_mm; normal/<im>.png = uint8 RGB (n + 1) / 2 * 255, camera frame",
         "generator": f"surftrack {__version__}", "seed": seed, "split": split, "config": cfg.to_dict(),
         "images": n_images,
         "objects": {str(oid): {"instrument": inst.name, "part": p}

@@ -102,7 +102,9 @@ def roll_reference(cfg: PoseCfg, shaft: np.ndarray) -> np.ndarray | None:
     decides which views of the jaws the data holds. ``view`` (None: the viewing direction) turns the
     jaws' opening direction (the pitch axis) towards the camera, so one jaw of a two-jaw tool is mostly
     behind the other; ``across`` turns it across the view, perpendicular to the shaft and the viewing
-    direction. Mean visible fraction of the LND's parts (80 images, seed 21), shaft / wrist / left jaw /
+    direction. The whole wrist turns with it: with ``view`` the wrist pitch bends in the image plane and
+    the yaw towards the camera, with ``across`` the other way round. The recorded roll (``joints_deg``)
+    counts from this zero. Mean visible fraction of the LND's parts (80 images, seed 21), shaft / wrist / left jaw /
     right jaw: ``view`` 79 / 51 / 43 / 84 %, ``across`` 76 / 74 / 51 / 56 %."""
     if cfg.roll_zero == "view":
         return None

@@ -156,7 +156,7 @@ class Tracker:
             try:
                 check_anchor(self._kinematic, estimator.model.parts)
             except ValueError as e:
-                raise TrackConfigError(f"kinematic_anchor: {e}") from None
+                raise TrackConfigError(str(e)) from None
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
     # ------------------------------------------------------------------ helpers
