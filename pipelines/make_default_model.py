@@ -4,24 +4,30 @@
 
 Steps (each resumable: an existing output is reused):
 
-1. ``surftrack synth``: 400 LND images (seed 11) and 2,000 LND images (seed 12), the default synthesis
-   config; 100 held-out LND images (seed 13) for evaluation.
+1. ``surftrack synth``: 400 LND images (seed 11), 2,000 LND images (seed 12) and 2,000 more (seed 15),
+   the default synthesis config; 100 held-out LND images (seed 13) for evaluation.
 2. ``surftrack train --config lite``: 2,000 steps on the 400 images with a constant learning rate
    (``schedule: constant``); 3,500 steps on the 2,000 images started from those weights (``--init``),
    with the lite config's cosine decay; 3,000 more steps on the same images from those weights at half
-   the learning rates (1.5e-4 / 1.5e-5), cosine again.
+   the learning rates (1.5e-4 / 1.5e-5), cosine again; 7,500 steps on both 2,000-image sets (joined as
+   one BOP folder whose scene folders link to theirs) from those weights, at the same rates, cosine.
+   Each stage holds out its own validation images from its data, so most of the fourth stage's were
+   training images of the second and third: its validation curve flatters; the held-out evaluation
+   below is independent of all stages.
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
    ``models/default.curves.png``.
 4. ``surftrack eval`` (fast preset) on the held-out images; the table goes to ``models/default.eval.md``
    and, by hand, into ``models/MODEL_CARD.md``.
 
-On the 2-core CPU machine of the model card the whole recipe takes about 3.5 hours (synthesis ~8 min,
-training ~3 h, evaluation a few minutes).
+On the 2-core CPU machine of the model card the whole recipe takes about 4.5 hours (synthesis ~15 min,
+training ~4 h 10 min, evaluation a few minutes).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -37,6 +43,37 @@ def _synth(out: Path, images: int, seed: int) -> None:
     generate_dataset(out, cfg, images, seed=seed, workers=2, progress=True)
 
 
+def _join(out: Path, sources: list[Path]) -> None:
+    """One BOP folder whose train scenes are relative links to those of ``sources`` (renumbered in
+    order), with the first source's models and a ``dataset_card.json`` that names the parts (training reads
+    the instrument names from it) and the sources. The sources must hold the same models and objects.
+    Built under a temporary name and renamed, so an interrupted join is never reused; an existing join is
+    checked against the sources."""
+    scenes = [d for src in sources for d in sorted((src / "train").iterdir()) if d.is_dir()]
+    if out.is_dir():
+        have = sorted((out / "train").iterdir()) if (out / "train").is_dir() else []
+        if [d.resolve() for d in have] != [d.resolve() for d in scenes]:
+            raise SystemExit(f"{out}: its scenes are not those of {', '.join(map(str, sources))}; remove it")
+        return
+    cards = [json.loads((src / "dataset_card.json").read_text()) for src in sources]
+    names = sorted(f.name for f in (sources[0] / "models").iterdir())
+    for src, card in zip(sources[1:], cards[1:]):
+        if (sorted(f.name for f in (src / "models").iterdir()) != names
+                or any((src / "models" / n).read_bytes() != (sources[0] / "models" / n).read_bytes() for n in names)
+                or card["objects"] != cards[0]["objects"]):
+            raise SystemExit(f"{src}: its models differ from those of {sources[0]}")
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "train").mkdir(parents=True)
+    (tmp / "models").symlink_to(os.path.relpath(sources[0] / "models", tmp), target_is_directory=True)
+    for n, scene in enumerate(scenes):
+        (tmp / "train" / f"{n:06d}").symlink_to(os.path.relpath(scene, tmp / "train"), target_is_directory=True)
+    card = {"joined": [str(src) for src in sources], "objects": cards[0]["objects"],
+            "images": sum(c.get("images", 0) for c in cards), "sources": cards}
+    (tmp / "dataset_card.json").write_text(json.dumps(card, indent=1))
+    tmp.rename(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="runs/default", help="working folder (datasets, full checkpoints)")
@@ -49,8 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model import load_checkpoint, load_train_config, save_checkpoint
     from surftrack.model.train import train
 
-    for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd_test100", 100, 13)):
+    for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd2k_b", 2000, 15), ("lnd_test100", 100, 13)):
         _synth(work / name, n, seed)
+    _join(work / "lnd4k", [work / "lnd2k", work / "lnd2k_b"])
 
     lite = load_train_config("lite")
     stage1 = work / "stage1.pt"
@@ -59,16 +97,19 @@ def main(argv: list[str] | None = None) -> int:
     stage2 = work / "stage2.pt"
     if not stage2.is_file() or load_checkpoint(stage2)[2]["step"] < 3500:
         train(lite, work / "lnd2k", stage2, steps=3500, device=args.device, init=stage1, resume=stage2.is_file())
+    half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
     stage3 = work / "stage3.pt"
     if not stage3.is_file() or load_checkpoint(stage3)[2]["step"] < 3000:
-        train(lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5}), work / "lnd2k", stage3, steps=3000,
-              device=args.device, init=stage2, resume=stage3.is_file())
+        train(half, work / "lnd2k", stage3, steps=3000, device=args.device, init=stage2, resume=stage3.is_file())
+    stage4 = work / "stage4.pt"
+    if not stage4.is_file() or load_checkpoint(stage4)[2]["step"] < 7500:
+        train(half, work / "lnd4k", stage4, steps=7500, device=args.device, init=stage3, resume=stage4.is_file())
 
-    model, cfg, blob = load_checkpoint(stage3)
+    model, cfg, blob = load_checkpoint(stage4)
     models = REPO / "models"
     models.mkdir(exist_ok=True)
     save_checkpoint(models / "default.pt", model, cfg, blob["step"], int8=True)
-    shutil.copy(stage3.with_suffix(".curves.png"), models / "default.curves.png")
+    shutil.copy(stage4.with_suffix(".curves.png"), models / "default.curves.png")
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
     if not args.skip_eval:
