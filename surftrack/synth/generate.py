@@ -329,7 +329,8 @@ def write_dataset_card(out: Path, cfg: SynthConfig, seed: int, instruments: list
     all_runs = card["runs"]
     card.update({
         "format": "BOP (bop_toolkit layout); extra scene_gt keys: instrument, instrument_index, part, joints_deg "
-                  "(roll from the zero of config.pose.roll_zero), trocar_mm, tip_to_tissue_mm; normal/<im>.png = uint8 RGB (n + 1) / 2 * 255, camera frame",
+                  "(roll from the zero of config.pose.roll_zero), trocar_mm, tip_to_tissue_mm; "
+                  "normal/<im>.png = uint8 RGB (n + 1) / 2 * 255, camera frame",
         "generator": f"surftrack {__version__}", "seed": seed, "split": split, "config": cfg.to_dict(),
         "images": n_images,
         "objects": {str(oid): {"instrument": inst.name, "part": p}

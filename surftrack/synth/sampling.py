@@ -104,8 +104,8 @@ def roll_reference(cfg: PoseCfg, shaft: np.ndarray) -> np.ndarray | None:
     behind the other; ``across`` turns it across the view, perpendicular to the shaft and the viewing
     direction. The whole wrist turns with it: with ``view`` the wrist pitch bends in the image plane and
     the yaw towards the camera, with ``across`` the other way round. The recorded roll (``joints_deg``)
-    counts from this zero. Mean visible fraction of the LND's parts (80 images, seed 21), shaft / wrist / left jaw /
-    right jaw: ``view`` 79 / 51 / 43 / 84 %, ``across`` 76 / 74 / 51 / 56 %."""
+    counts from this zero. Mean visible fraction of the LND's parts (80 images, seed 21), shaft / wrist /
+    left jaw / right jaw: ``view`` 79 / 51 / 43 / 84 %, ``across`` 76 / 74 / 51 / 56 %."""
     if cfg.roll_zero == "view":
         return None
     across = np.cross(shaft, [0.0, 0.0, 1.0])
