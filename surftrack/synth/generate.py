@@ -208,7 +208,7 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
         # the default must reproduce the behaviour from before the key existed.
         try:
             made = build_dataclass(SynthConfig, dict(made), str(card), ConfigError).to_dict()
-        except (ConfigError, TypeError, ValueError):
+        except (TypeError, ValueError):  # ConfigError included
             pass
     if old.get("seed") != seed or json.loads(json.dumps(made)) != json.loads(json.dumps(cfg.to_dict())):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
