@@ -1,7 +1,7 @@
 """The ``surftrack`` command line.
 
 The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAMERA.json`` (the same as
-``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, train, eval.
+``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, train, eval, analyze.
 """
 
 from __future__ import annotations
