@@ -5,6 +5,8 @@ PYTHON ?= python3
 STAMP := $(VENV)/.surftrack-installed
 # CPU build of torch unless an NVIDIA GPU is present (an unpinned torch pulls a multi-GB CUDA build).
 TORCH_CPU ?= torch==2.13.0
+# e.g. https://download.pytorch.org/whl/cpu where pip's own index would serve a CUDA build
+TORCH_INDEX ?=
 
 .PHONY: install demo test test-slow bench clean
 
@@ -13,7 +15,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	if ! command -v nvidia-smi >/dev/null 2>&1; then $(PY) -m pip install --quiet "$(TORCH_CPU)"; fi
+	if ! command -v nvidia-smi >/dev/null 2>&1; then $(PY) -m pip install --quiet $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) "$(TORCH_CPU)"; fi
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 

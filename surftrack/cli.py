@@ -209,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.set_defaults(func=_cmd_instruments)
     sy = sub.add_parser("synth", help="generate a SynSurg6D-style BOP dataset (resumable)")
     sy.add_argument("--out", required=True, help="dataset folder (created; an existing one is resumed)")
-    sy.add_argument("--instruments", help="comma-separated names or aliases (default: from the config)")
+    sy.add_argument("--instruments", help="comma-separated names, aliases or instrument YAML files (default: from the config)")
     sy.add_argument("--images", type=int, default=100, help="total number of images (default: 100)")
     sy.add_argument("--seed", type=_seed, default=0)
     sy.add_argument("--workers", type=int, default=1, help="worker processes, each with its own GL context")
