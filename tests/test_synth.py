@@ -267,6 +267,16 @@ def test_resume_accepts_a_card_from_before_a_config_key_existed(dataset, tmp_pat
         _check_resume(tmp_path, across, 5)
 
 
+def test_resume_takes_an_alias_for_its_instrument(dataset):
+    """``--instruments lnd`` resumes a dataset made with ``large_needle_driver``; another tool does not."""
+    from surftrack.synth.generate import _check_resume
+
+    root, cfg, _ = dataset
+    _check_resume(root, load_synth_config(overrides={**SMALL, "instruments": ["lnd", "scissors"]}), 5)
+    with pytest.raises(ConfigError, match="another seed or configuration"):
+        _check_resume(root, load_synth_config(overrides={**SMALL, "instruments": ["lnd", "cadiere_forceps"]}), 5)
+
+
 def test_instrument_aliases_and_duplicates(tmp_path):
     cfg = load_synth_config(overrides={**SMALL, "instruments": ["lnd", "mcs"]})
     from surftrack.synth.generate import load_instruments

@@ -210,9 +210,22 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
             made = build_dataclass(SynthConfig, dict(made), str(card), ConfigError).to_dict()
         except (TypeError, ValueError):  # ConfigError included
             pass
-    if old.get("seed") != seed or json.loads(json.dumps(made)) != json.loads(json.dumps(cfg.to_dict())):
+    if old.get("seed") != seed or _comparable(made) != _comparable(cfg.to_dict()):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
+
+
+def _comparable(config) -> object:
+    """A config as JSON data, built-in instruments under their names (``lnd`` and
+    ``large_needle_driver`` make the same images)."""
+    from surftrack.instruments.library import instrument_files
+
+    data = json.loads(json.dumps(config))
+    if isinstance(data, dict) and isinstance(data.get("instruments"), list):
+        builtin = instrument_files()
+        data["instruments"] = [load_instrument(n).name if isinstance(n, str) and n in builtin else n
+                               for n in data["instruments"]]
+    return data
 
 
 # ---------------------------------------------------------------------- worker pool plumbing
