@@ -112,6 +112,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise CLIError("--init and --resume exclude each other: --resume continues --out, --init starts afresh")
     s = train(cfg, args.data, args.out, steps=args.steps, resume=args.resume, device=args.device,
               progress=not args.quiet, init=args.init)
+    if s["rank"] != 0:  # under torchrun, one summary
+        return 0
     val = s["val"]
     extra = (f"; held-out: RE median {val['re_median']:.1f} deg, TE median {val['te_median']:.1f} mm, "
              f"ADD-10 {100 * val['add10']:.1f} %") if "re_median" in val else ""

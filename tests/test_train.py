@@ -86,6 +86,30 @@ def test_checkpoint_round_trip_and_resume(tiny_data, tmp_path):
     assert steps == sorted(set(steps)) and steps[-1] == 6  # no step logged twice across the resume
 
 
+def test_two_process_ddp_training(tiny_data, tmp_path):
+    """``torchrun --nproc_per_node 2`` (gloo on CPU): per-part decoders and SIREN fields absent from a
+    batch do not stall DDP, the processes end with the same weights (checked inside ``train``), and only
+    rank 0 logs, saves and prints."""
+    import os
+    import subprocess
+    import sys
+
+    import yaml
+
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(TINY))
+    out = tmp_path / "m.pt"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                        "-m", "surftrack.cli", "train", "--config", str(tmp_path / "tiny.yaml"), "--data",
+                        str(tiny_data), "--out", str(out), "--steps", "5", "--quiet"],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.count("surftrack train: 5 steps") == 1, r.stdout
+    assert load_checkpoint(out)[2]["step"] == 5
+    rows = [json.loads(l) for l in (tmp_path / "m.metrics.jsonl").read_text().splitlines()]
+    assert [row["step"] for row in rows if row["kind"] == "train"] == [1, 2, 3, 4, 5]
+
+
 def test_bad_checkpoint_and_config_errors(tmp_path):
     from surftrack.model import CheckpointError, TrainConfigError
 

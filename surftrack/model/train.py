@@ -41,8 +41,29 @@ def _dist() -> tuple[int, int]:
     return (torch.distributed.get_rank() if world > 1 else 0), world
 
 
+class LossForward(torch.nn.Module):
+    """Everything a training step asks of the model in one ``forward``: mask logits and queries of the
+    crops, and keys of 3D points (``pts[b]`` on the surface of part ``part[b]``). DDP all-reduces the
+    gradients of the parameters a forward used, so the SIREN fields must be called inside it too; the
+    decoders and fields of parts absent from a batch are unused (``find_unused_parameters``)."""
+
+    def __init__(self, model: SurfSurg6D, amp: bool = False):
+        super().__init__()
+        self.model, self.amp = model, amp
+
+    def forward(self, img: torch.Tensor, part: torch.Tensor, pts: torch.Tensor):
+        with torch.autocast(img.device.type, enabled=self.amp):
+            mask_logit, query = self.model(img, part)
+        keys = torch.empty((*pts.shape[:2], query.shape[1]), device=pts.device)
+        for p in torch.unique(part).tolist():
+            sel = (part == p).nonzero(as_tuple=True)[0]
+            keys[sel] = self.model.keys(p, pts[sel].reshape(-1, 3)).view(len(sel), pts.shape[1], -1)
+        return mask_logit.float(), query.float(), keys
+
+
 class Trainer:
-    """Holds the model, the surface banks and the optimiser; :meth:`step` runs one training step."""
+    """Holds the model, the surface banks and the optimiser; :meth:`step` runs one training step
+    (through ``module``, a DDP wrapper of :attr:`forward`, when given)."""
 
     def __init__(self, model: SurfSurg6D, cfg: TrainConfig, device: torch.device):
         self.model, self.cfg, self.device = model, cfg, device
@@ -55,11 +76,11 @@ class Trainer:
         ])
         self.amp = cfg.run.amp and device.type == "cuda"
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+        self.forward = LossForward(model, self.amp)
 
     def losses(self, batch: dict, gen: torch.Generator | None = None, module: torch.nn.Module | None = None) -> dict:
         """Loss components for a batch (see :func:`surftrack.model.losses.surfsurg6d_loss`)."""
-        cfg, model = self.cfg.loss, self.model
-        net = module if module is not None else model
+        cfg = self.cfg.loss
         img = batch["image"].to(self.device, non_blocking=True)
         if self.device.type == "cuda":
             img = img.contiguous(memory_format=torch.channels_last)
@@ -67,25 +88,19 @@ class Trainer:
         mask_t = batch["mask_train"].to(self.device)
         valid = batch["coord_valid"].to(self.device) & (mask_t > 0.5)
         coord = batch["coord_norm"].to(self.device)
-        B, S = img.shape[0], img.shape[-1]
-        with torch.autocast(self.device.type, enabled=self.amp):
-            mask_logit, query = net(img, part)
-        mask_logit, query = mask_logit.float(), query.float()
+        B = img.shape[0]
         # Queries: n_pos pixels per crop from the training mask (with replacement when it is small).
         w = valid.view(B, -1).float()
         empty = w.sum(1) == 0
         w[empty] = 1.0  # never happens after dataset filtering; keeps multinomial defined
         idx = torch.multinomial(w, cfg.n_pos, replacement=True, generator=gen)        # (B, N)
-        q = query.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, query.shape[1]))
         c_q = coord.view(B, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
         neg_idx = torch.randint(0, self.bank.shape[1], (B, cfg.n_neg), device=self.device, generator=gen)
         c_neg = self.bank[part[:, None], neg_idx]                                       # (B, M, 3)
         noise = torch.randn((B, cfg.n_pos + cfg.n_neg, 3), device=self.device, generator=gen) * cfg.key_noise
         pts = torch.cat([c_q, c_neg], dim=1) + noise
-        keys = torch.empty((B, pts.shape[1], query.shape[1]), device=self.device)
-        for p in torch.unique(part).tolist():
-            sel = (part == p).nonzero(as_tuple=True)[0]
-            keys[sel] = model.keys(p, pts[sel].reshape(-1, 3)).view(len(sel), pts.shape[1], -1)
+        mask_logit, query, keys = (module if module is not None else self.forward)(img, part, pts)
+        q = query.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, query.shape[1]))
         k_pos, k_neg = keys[:, : cfg.n_pos], keys[:, cfg.n_pos:]
         out = losses.surfsurg6d_loss(
             mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, key_coords=c_neg, key_emb=k_neg,
@@ -298,9 +313,10 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         trainer = Trainer(model, cfg, dev)
         if rank == 0 and metrics_path.exists():
             metrics_path.unlink()
-    module = model
+    module = None
     if world > 1:
-        module = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+        module = torch.nn.parallel.DistributedDataParallel(
+            trainer.forward, device_ids=[dev.index] if dev.type == "cuda" else None, find_unused_parameters=True)
 
     loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world, sampler)
     val_loader = _loader(val_ds, cfg.optim.batch, 0, cfg.run.seed, False) if val_ds is not None else None
@@ -352,8 +368,22 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
             save(step)
     if rank == 0:
         save_checkpoint(out.with_suffix(".fp16.pt"), model, cfg, step, half=True)
+    if world > 1:
+        _check_ranks_agree(model, rank)
     return {"steps": step, "images_per_s": seen / max(time.perf_counter() - t0, 1e-9), "val": last_val,
-            "checkpoint": str(out), "metrics": str(metrics_path)}
+            "checkpoint": str(out), "metrics": str(metrics_path), "rank": rank}
+
+
+def _check_ranks_agree(model: torch.nn.Module, rank: int) -> None:
+    """Raise when the DDP processes ended with different weights: some gradient was not all-reduced
+    (a parameter used outside :class:`LossForward`), and the checkpoint of rank 0 is not the run's model."""
+    vec = torch.cat([p.detach().reshape(-1).double() for p in model.parameters()])
+    ramp = torch.linspace(0.0, 1.0, len(vec), dtype=torch.float64, device=vec.device)
+    sig = torch.stack([vec.sum(), vec.square().sum(), (vec * ramp).sum()])
+    every = [torch.empty_like(sig) for _ in range(torch.distributed.get_world_size())]
+    torch.distributed.all_gather(every, sig)
+    if not all(torch.allclose(s, every[0], rtol=1e-9, atol=0.0) for s in every):
+        raise RuntimeError(f"rank {rank}: the training processes ended with different weights")
 
 
 @torch.no_grad()
