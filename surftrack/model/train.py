@@ -66,6 +66,8 @@ class Trainer:
     (through ``module``, a DDP wrapper of :attr:`forward`, when given)."""
 
     def __init__(self, model: SurfSurg6D, cfg: TrainConfig, device: torch.device):
+        if device.type == "cuda":  # the crops are channels-last too (fresh, initialised or resumed alike)
+            model = model.to(memory_format=torch.channels_last)
         self.model, self.cfg, self.device = model, cfg, device
         banks = [surface_bank(p, BANK_SIZE, seed=i) for i, p in enumerate(model.parts)]
         self.bank = torch.stack([torch.from_numpy(b[0]) for b in banks]).to(device)  # (P, BANK, 3)
@@ -308,8 +310,6 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
                 raise CheckpointError(f"{init}: its architecture differs from the config's model: "
                                       f"{str(e).splitlines()[0]}") from None
             del src
-        if dev.type == "cuda":
-            model = model.to(memory_format=torch.channels_last)
         trainer = Trainer(model, cfg, dev)
         if rank == 0 and metrics_path.exists():
             metrics_path.unlink()
