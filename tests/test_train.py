@@ -86,6 +86,17 @@ def test_checkpoint_round_trip_and_resume(tiny_data, tmp_path):
     assert steps == sorted(set(steps)) and steps[-1] == 6  # no step logged twice across the resume
 
 
+def test_training_mixes_a_second_dataset(tiny_data, tmp_path):
+    """``data.real_data`` (the paper's syn:real 1:1 batches) trains end to end; here the second dataset is
+    the same small set, which has the same models."""
+    from surftrack.model.config import TrainConfig
+
+    cfg = TrainConfig.from_dict(TINY).replace(data={"real_data": str(tiny_data), "syn_real_ratio": (1, 1)},
+                                              optim={"steps": 3}, run={"val_every": 100})
+    s = train(cfg, tiny_data, tmp_path / "m.pt", progress=False)
+    assert s["steps"] == 3 and load_checkpoint(tmp_path / "m.pt")[2]["step"] == 3
+
+
 def test_two_process_ddp_training(tiny_data, tmp_path):
     """``torchrun --nproc_per_node 2`` (gloo on CPU): per-part decoders and SIREN fields absent from a
     batch do not stall DDP, the processes end with the same weights (checked inside ``train``), and only
