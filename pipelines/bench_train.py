@@ -30,23 +30,25 @@ def network_only(cfg, device: torch.device, steps: int) -> float:
     B, S = cfg.optim.batch, cfg.data.crop
     x = torch.randn(B, 3, S, S, device=device)
     part = torch.arange(B, device=device) % 4
-    amp = device.type == "cuda"
-    if amp:
+    amp = device.type == "cuda" and cfg.run.amp  # as the full training step does
+    scaler = torch.amp.GradScaler("cuda", enabled=amp)
+    if device.type == "cuda":
         net = net.to(memory_format=torch.channels_last)
         x = x.contiguous(memory_format=torch.channels_last)
     for i in range(steps + 3):
         if i == 3:
             if device.type == "cuda":
-                torch.cuda.synchronize()
+                torch.cuda.synchronize(device)
             t0 = time.perf_counter()
         with torch.autocast(device.type, enabled=amp):
             m, q = net(x, part)
             loss = m.float().mean() + q.float().square().mean()
         opt.zero_grad()
-        loss.backward()
-        opt.step()
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
     if device.type == "cuda":
-        torch.cuda.synchronize()
+        torch.cuda.synchronize(device)
     return steps * B / (time.perf_counter() - t0)
 
 
@@ -63,7 +65,7 @@ def main() -> None:
         cfg = cfg.replace(run={"workers": args.workers})
     cfg = cfg.replace(run={"val_every": 10**9, "ckpt_every": 10**9, "log_every": 5})
     device = torch.device(args.device)
-    name = torch.cuda.get_device_name(0) if device.type == "cuda" else f"CPU, {os.cpu_count()} cores"
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {os.cpu_count()} cores"
     print(f"config {args.config}: crop {cfg.data.crop}, batch {cfg.optim.batch}, decoders "
           f"{list(cfg.model.decoder_widths)} | device {name} | torch {torch.__version__}")
     print(f"network alone: {network_only(cfg, device, max(5, args.steps // 2)):.1f} images/s")

@@ -33,12 +33,19 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _dist() -> tuple[int, int]:
-    """(rank, world size), initialising torch.distributed when launched by torchrun."""
+def _dist(device: str | None) -> tuple[int, int, torch.device]:
+    """(rank, world size, this process's device), initialising torch.distributed when launched by
+    torchrun: NCCL on CUDA (one GPU per process, ``LOCAL_RANK``), gloo on the CPU."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and not torch.distributed.is_initialized():
-        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    return (torch.distributed.get_rank() if world > 1 else 0), world
+    dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if world == 1:
+        return 0, 1, dev
+    if dev.type == "cuda":
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(dev)
+    if not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    return torch.distributed.get_rank(), world, dev
 
 
 class LossForward(torch.nn.Module):
@@ -239,11 +246,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
 
     from surftrack.data import BopDataset, CropDataset, MixedSampler, mixed_dataset
 
-    rank, world = _dist()
-    dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    if dev.type == "cuda" and world > 1:
-        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        torch.cuda.set_device(dev)
+    rank, world, dev = _dist(device)
     out = Path(out)
     log_dir = Path(log_dir) if log_dir else out.parent
     metrics_path = log_dir / f"{out.stem}.metrics.jsonl"
@@ -287,10 +290,15 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         trainer = Trainer(model, cfg, dev)
         if blob.get("optimizer"):
             trainer.optimizer.load_state_dict(blob["optimizer"])
+            _match_state_layout(trainer.optimizer)
         start = int(blob["step"])
         extra = blob.get("extra", {})
-        if "torch_rng" in extra:
+        if world == 1 and "torch_rng" in extra:  # the stream continues where the checkpoint left it
             torch.set_rng_state(extra["torch_rng"])
+            if dev.type == "cuda" and "cuda_rng" in extra:
+                torch.cuda.set_rng_state(extra["cuda_rng"], dev)
+        else:  # only rank 0's state is saved: a fresh stream per rank, not step 0's again
+            seed_everything(cfg.run.seed + rank + 100_003 * start)
         if extra.get("scaler"):
             trainer.scaler.load_state_dict(extra["scaler"])
         start_epoch = int(extra.get("epoch", 0))
@@ -329,8 +337,11 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
 
     def save(step: int) -> None:
         if rank == 0:
+            rng = {"torch_rng": torch.get_rng_state()}
+            if dev.type == "cuda":
+                rng["cuda_rng"] = torch.cuda.get_rng_state(dev)
             save_checkpoint(out, model, cfg, step, trainer.optimizer, extra={
-                "torch_rng": torch.get_rng_state(), "epoch": epoch, "scaler": trainer.scaler.state_dict()})
+                **rng, "epoch": epoch, "scaler": trainer.scaler.state_dict()})
 
     step, t0, seen = start, time.perf_counter(), 0
     bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", disable=not progress or rank > 0)
@@ -355,10 +366,12 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
                     log({"kind": "train", "step": step, "images_per_s": rate, **logs})
                     bar.set_postfix(loss=f"{logs['total']:.3f}", img_s=f"{rate:.1f}")
                 if val_loader is not None and (step % cfg.run.val_every == 0 or step == total_steps):
-                    last_val = validate(trainer, val_loader)
-                    log({"kind": "val", "step": step, **last_val})
-                    if rank == 0:
+                    if rank == 0:  # the others wait in the barrier (or the next step's all-reduce)
+                        last_val = validate(trainer, val_loader)
+                        log({"kind": "val", "step": step, **last_val})
                         plot_curves(metrics_path, log_dir / f"{out.stem}.curves.png")
+                    if world > 1:
+                        torch.distributed.barrier()
                 if step % cfg.run.ckpt_every == 0:
                     save(step)
             epoch += 1
@@ -372,6 +385,16 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         _check_ranks_agree(model, rank)
     return {"steps": step, "images_per_s": seen / max(time.perf_counter() - t0, 1e-9), "val": last_val,
             "checkpoint": str(out), "metrics": str(metrics_path), "rank": rank}
+
+
+def _match_state_layout(optimizer: torch.optim.Optimizer) -> None:
+    """Give the loaded Adam moments the memory layout of their parameters (channels-last on CUDA), which
+    ``load_state_dict`` does not keep; mixed layouts push the fused update onto a slower path."""
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            for k, v in optimizer.state.get(p, {}).items():
+                if torch.is_tensor(v) and v.shape == p.shape and v.stride() != p.stride():
+                    optimizer.state[p][k] = torch.empty_like(p).copy_(v)
 
 
 def _check_ranks_agree(model: torch.nn.Module, rank: int) -> None:

@@ -112,9 +112,11 @@ def build_field(mask_grid: torch.Tensor, query_grid: torch.Tensor, keys: torch.T
     (E, g, g), the part's surface keys (N, E). ``n_draws``: correspondences the hypotheses will draw
     (sizes the per-pixel sample pools, :func:`pool_size`)."""
     g = int(mask_grid.shape[-1])
-    mask = mask_grid.reshape(-1).float()
+    # An fp16 overflow must not reach multinomial: on CUDA a NaN there is a device-side assert.
+    mask = torch.nan_to_num(mask_grid.reshape(-1).float(), nan=-30.0, posinf=30.0, neginf=-30.0)
     active = select_active(mask, threshold, min_active, max_active)
-    Q = query_grid.reshape(query_grid.shape[0], -1)[:, active].T.float().contiguous()
+    Q = torch.nan_to_num(query_grid.reshape(query_grid.shape[0], -1)[:, active].T.float(), nan=0.0,
+                         posinf=1e4, neginf=-1e4).contiguous()
     keys = keys.float()
     kT = keys.T.contiguous()
     A, dev = len(active), Q.device

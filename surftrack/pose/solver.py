@@ -25,12 +25,13 @@ class StageTimer:
     """Wall-clock milliseconds per named stage (accumulated); synchronises CUDA around each stage."""
 
     def __init__(self, device: torch.device | str = "cpu"):
-        self.cuda = torch.device(device).type == "cuda"
+        self.device = torch.device(device)
+        self.cuda = self.device.type == "cuda"
         self.ms: dict[str, float] = {}
 
     def _sync(self) -> None:
         if self.cuda:
-            torch.cuda.synchronize()
+            torch.cuda.synchronize(self.device)
 
     @contextmanager
     def __call__(self, name: str):
