@@ -4,23 +4,25 @@
 
 Steps (each resumable: an existing output is reused):
 
-1. ``surftrack synth``: 400 LND images (seed 11), 2,000 LND images (seed 12) and 2,000 more (seed 15),
-   the default synthesis config; 100 held-out LND images (seed 13) for evaluation.
-2. ``surftrack train --config lite``: 2,000 steps on the 400 images with a constant learning rate
-   (``schedule: constant``); 3,500 steps on the 2,000 images started from those weights (``--init``),
-   with the lite config's cosine decay; 3,000 more steps on the same images from those weights at half
-   the learning rates (1.5e-4 / 1.5e-5), cosine again; 7,500 steps on both 2,000-image sets (joined as
-   one BOP folder whose scene folders link to theirs) from those weights, at the same rates, cosine.
-   Each stage holds out its own validation images from its data, so most of the fourth stage's were
-   training images of the second and third: its validation curve flatters; the held-out evaluation
-   below is independent of all stages.
+1. ``surftrack synth``: 400 LND images (seed 11), 2,000 (seed 12) and 2,000 more (seed 15) with the
+   default synthesis config (roll within +-30 deg of ``roll_zero: view``); 2,000 with ``roll_zero:
+   across`` (seed 16) and 2,000 with the roll anywhere in +-180 deg (seed 18). Held out for evaluation:
+   100 images of each kind (seeds 13, 17 and 19).
+2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
+   2,000 steps on the 400 images with a constant learning rate (``schedule: constant``); 3,500 steps on
+   the first 2,000 images with the lite config's cosine decay; 3,000 more on them at half the learning
+   rates (1.5e-4 / 1.5e-5), cosine again; 7,500 steps on both ``view`` sets (4,000 images, joined as one
+   BOP folder whose scene folders link to theirs) at the same rates; 10,000 steps on all four 2,000-image
+   sets (8,000 images) at the same rates. Each stage holds out its own validation images from its data,
+   so most of the later stages' were training images of earlier ones: their validation curves flatter;
+   the held-out evaluation below is independent of all stages.
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
    ``models/default.curves.png``.
-4. ``surftrack eval`` (fast preset) on the held-out images; the table goes to ``models/default.eval.md``
+4. ``surftrack eval`` (fast preset) on the three held-out sets; the tables go to ``models/default.eval.md``
    and, by hand, into ``models/MODEL_CARD.md``.
 
-On the 2-core CPU machine of the model card the whole recipe takes about 4.5 hours (synthesis ~15 min,
-training ~4 h 10 min, evaluation a few minutes).
+On the 2-core CPU machine of the model card the whole recipe takes about 7 hours (synthesis ~25 min,
+training ~6 h 20 min, evaluation a few minutes).
 """
 
 from __future__ import annotations
@@ -35,11 +37,15 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 
 
-def _synth(out: Path, images: int, seed: int) -> None:
+def _synth(out: Path, images: int, seed: int, **pose) -> None:
+    """``images`` LND images with the default synthesis config, its ``pose`` settings replaced by ``pose``."""
+    import dataclasses
+
     from surftrack.synth.config import load_synth_config
     from surftrack.synth.generate import generate_dataset
 
     cfg = load_synth_config(overrides={"instruments": ["large_needle_driver"]})
+    cfg = dataclasses.replace(cfg, pose=dataclasses.replace(cfg.pose, **pose)).validate()
     generate_dataset(out, cfg, images, seed=seed, workers=2, progress=True)
 
 
@@ -88,7 +94,12 @@ def main(argv: list[str] | None = None) -> int:
 
     for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd2k_b", 2000, 15), ("lnd_test100", 100, 13)):
         _synth(work / name, n, seed)
+    for name, n, seed in (("lnd_across2k", 2000, 16), ("lnd_across_test100", 100, 17)):
+        _synth(work / name, n, seed, roll_zero="across")
+    for name, n, seed in (("lnd_fullroll2k", 2000, 18), ("lnd_fullroll_test100", 100, 19)):
+        _synth(work / name, n, seed, roll_deg=(-180.0, 180.0))
     _join(work / "lnd4k", [work / "lnd2k", work / "lnd2k_b"])
+    _join(work / "lnd8k_mix", [work / "lnd2k", work / "lnd2k_b", work / "lnd_across2k", work / "lnd_fullroll2k"])
 
     lite = load_train_config("lite")
     stage1 = work / "stage1.pt"
@@ -104,21 +115,27 @@ def main(argv: list[str] | None = None) -> int:
     stage4 = work / "stage4.pt"
     if not stage4.is_file() or load_checkpoint(stage4)[2]["step"] < 7500:
         train(half, work / "lnd4k", stage4, steps=7500, device=args.device, init=stage3, resume=stage4.is_file())
+    stage5 = work / "stage5.pt"
+    if not stage5.is_file() or load_checkpoint(stage5)[2]["step"] < 10000:
+        train(half, work / "lnd8k_mix", stage5, steps=10000, device=args.device, init=stage4, resume=stage5.is_file())
 
-    model, cfg, blob = load_checkpoint(stage4)
+    model, cfg, blob = load_checkpoint(stage5)
     models = REPO / "models"
     models.mkdir(exist_ok=True)
     save_checkpoint(models / "default.pt", model, cfg, blob["step"], int8=True)
-    shutil.copy(stage4.with_suffix(".curves.png"), models / "default.curves.png")
+    shutil.copy(stage5.with_suffix(".curves.png"), models / "default.curves.png")
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
     if not args.skip_eval:
         from surftrack.pose import evaluate, markdown_table, write_eval_outputs
 
-        r = evaluate(models / "default.pt", work / "lnd_test100", split="train", preset="fast", device=args.device)
-        write_eval_outputs(r, work / "eval_test100.json")
-        (models / "default.eval.md").write_text(markdown_table(r))
-        print(markdown_table(r))
+        tables = []
+        for name in ("lnd_test100", "lnd_across_test100", "lnd_fullroll_test100"):
+            r = evaluate(models / "default.pt", work / name, split="train", preset="fast", device=args.device)
+            write_eval_outputs(r, work / f"eval_{name}.json")
+            tables.append(f"## {name}\n\n{markdown_table(r)}")
+        (models / "default.eval.md").write_text("\n\n".join(tables) + "\n")
+        print("\n\n".join(tables))
     return 0
 
 
