@@ -171,10 +171,10 @@ def main() -> None:
           f"{torch.get_num_threads()} CPU threads (solver {args.solver_threads or torch.get_num_threads()}) on "
           f"{os.cpu_count()} cores, load average {load:.2f}")
     for dev in args.devices:
-        if dev == "cuda" and not torch.cuda.is_available():
+        if torch.device(dev).type == "cuda" and not torch.cuda.is_available():
             print("cuda: not available, skipped")
             continue
-        name = torch.cuda.get_device_name(0) if dev == "cuda" else "CPU"
+        name = torch.cuda.get_device_name(dev) if torch.device(dev).type == "cuda" else "CPU"
         for preset in args.presets:
             est = PoseEstimator(model, preset, device=dev, solver_threads=args.solver_threads or None)
             print(f"\n{dev} ({name}), preset {preset}: crop {est.crop_size}, stride {est.preset.stride}, "

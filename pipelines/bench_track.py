@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     est_wall = time.perf_counter() - t0
     est_summary = score_est.summary()
 
-    dev = torch.cuda.get_device_name(0) if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+    on_gpu = torch.device(args.device).type == "cuda"
+    dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
     print(f"\nmodel {model_path}, preset {cfg.preset}, keyframe every {cfg.keyframe_every} frames, "
           f"kinematic fit {'on' if cfg.kinematic else 'off'}, device {dev}")
     print(f"frames: {run['frames']}; tracking end to end (decode, tracker, MCAP) {run['fps']:.1f} frames/s, "
