@@ -28,6 +28,7 @@ training ~6 h 20 min, evaluation a few minutes).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -39,8 +40,6 @@ REPO = Path(__file__).resolve().parent.parent
 
 def _synth(out: Path, images: int, seed: int, **pose) -> None:
     """``images`` LND images with the default synthesis config, its ``pose`` settings replaced by ``pose``."""
-    import dataclasses
-
     from surftrack.synth.config import load_synth_config
     from surftrack.synth.generate import generate_dataset
 

@@ -216,14 +216,14 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
 
 
 def _comparable(config) -> object:
-    """A config as JSON data, built-in instruments under their names (``lnd`` and
-    ``large_needle_driver`` make the same images)."""
+    """A config as JSON data, built-in instruments as their description files (``lnd`` and
+    ``large_needle_driver`` name the same file and make the same images)."""
     from surftrack.instruments.library import instrument_files
 
     data = json.loads(json.dumps(config))
     if isinstance(data, dict) and isinstance(data.get("instruments"), list):
         builtin = instrument_files()
-        data["instruments"] = [load_instrument(n).name if isinstance(n, str) and n in builtin else n
+        data["instruments"] = [str(builtin[n]) if isinstance(n, str) and n in builtin else n
                                for n in data["instruments"]]
     return data
 
