@@ -298,3 +298,32 @@ def test_kinematic_settings_are_checked():
     for bad in (0.0, float("nan")):
         with pytest.raises(ValueError, match="kinematic_anchor_weight"):
             TrackConfig(kinematic_anchor_weight=bad)
+
+
+def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(clip, lnd_parts, tiny_ckpt):
+    """Flow points are lifted to 3D from the tracked pose, so a flow measurement repeats that pose's error:
+    its covariance includes the pose's uncertainty at lifting time. Seeded 4 mm off, the wrist track is
+    pulled a third of the way to the estimator's (true) pose on the next keyframe; if the flow measurement
+    claimed its own PnP precision, the filter would trust it and keep almost all of the offset."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
+    frames = _frames(clip)
+    tid = lnd_parts["wrist"]
+    i = max(range(1, len(frames)), key=lambda k: min(gt.pose(k - 1, tid)[2], gt.pose(k, tid)[2]))
+    assert min(gt.pose(i - 1, tid)[2], gt.pose(i, tid)[2]) > 150, "two frames showing the wrist"
+    est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0)
+    info = next(p for p in model.parts if p.name == "wrist")
+    spec = PartSpec(tid, info.obj_id, info.instrument, 0, "wrist", info.vertices, info.faces)
+    tracker = Tracker(est, K, (320, 256), [spec], TrackConfig(keyframe_every=1, kinematic=False))
+    R, t, _ = gt.pose(i - 1, tid)
+    tracker.set_pose(tid, R, t + np.array([4.0, 0.0, 0.0]), (i - 1) / 10.0)
+    est.frame = i - 1
+    tracker.step(frames[i - 1], (i - 1) / 10.0, None)  # the seeded pose stands; points lifted from it
+    est.frame = i
+    state = tracker.step(frames[i], i / 10.0, None)[0]
+    assert state.status == "keyframe" and state.info["estimator"] == "cadence"
+    assert state.info.get("inliers", 0) >= 6, "a flow measurement was made before the keyframe"
+    te = pose_distance(state.R, state.t, *gt.pose(i, tid)[:2])[1]
+    assert 1.5 < te < 3.2, te

@@ -111,6 +111,7 @@ class _Track:
         self.confidence = 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         self.n_points_fresh = 0
+        self.lift_cov = np.zeros((6, 6))  # pose covariance when the flow points were lifted to 3D
         self.since_keyframe = 0
         self.since_refresh = 0
         self.since_meas = 0
@@ -186,6 +187,7 @@ class Tracker:
         tr.points = visible_points(gray, self.K, self.samples, self._posed(), tr.spec.name,
                                    max_points=self.cfg.max_points)
         tr.n_points_fresh = len(tr.points)
+        tr.lift_cov = PoseKalman.H @ tr.kf.covariance @ PoseKalman.H.T
         tr.since_refresh = 0
 
     def set_pose(self, track_id: int, R: np.ndarray, t: np.ndarray, time_s: float) -> None:
@@ -249,7 +251,10 @@ class Tracker:
                 tr.info.update(inliers=int(meas.inliers.sum()), inlier_ratio=meas.inlier_ratio, rms_px=meas.rms_px)
                 tr.points = tr.points.subset(meas.inliers)
                 if meas.inlier_ratio >= cfg.min_inlier_ratio and meas.rms_px <= cfg.max_rms_px:
-                    accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor)
+                    # the points' 3D positions came from the pose at lifting time, errors included: a
+                    # measurement claiming only its PnP precision would lock the filter onto that error and
+                    # keyframes could hardly pull it back
+                    accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor + tr.lift_cov)
                     tr.info["d2"] = tr.kf.last_d2
             if accepted:
                 tr.status, tr.since_meas = "tracking", 0
