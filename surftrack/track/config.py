@@ -32,8 +32,10 @@ class TrackConfig:
     needs ``min_points`` PnP inliers within ``inlier_px``, an inlier ratio >= ``min_inlier_ratio`` and an
     RMS error <= ``max_rms_px``. Its covariance (from the PnP Jacobian) gets ``flow_floor_mm`` /
     ``flow_floor_deg`` added (model error) and the filter's pose covariance when the points were lifted to
-    3D: they were lifted from that pose, so flow repeats its error and cannot be more certain than it. Estimator poses are fused with ``est_pos_std_mm`` /
-    ``est_rot_std_deg``; an initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+    3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
+    independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
+    remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
+    initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``
