@@ -325,5 +325,6 @@ def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(cl
     state = tracker.step(frames[i], i / 10.0, None)[0]
     assert state.status == "keyframe" and state.info["estimator"] == "cadence"
     assert state.info.get("inliers", 0) >= 6, "a flow measurement was made before the keyframe"
+    assert state.info["d2"] <= TrackConfig().kalman.gate_chi2, "... and passed the gate"
     te = pose_distance(state.R, state.t, *gt.pose(i, tid)[:2])[1]
     assert 1.5 < te < 3.2, te
