@@ -104,25 +104,21 @@ def main(argv: list[str] | None = None) -> int:
     stage1 = work / "stage1.pt"
     if not stage1.is_file():
         train(lite.replace(optim={"schedule": "constant"}), work / "lnd400", stage1, steps=2000, device=args.device)
-    stage2 = work / "stage2.pt"
-    if not stage2.is_file() or load_checkpoint(stage2)[2]["step"] < 3500:
-        train(lite, work / "lnd2k", stage2, steps=3500, device=args.device, init=stage1, resume=stage2.is_file())
     half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
-    stage3 = work / "stage3.pt"
-    if not stage3.is_file() or load_checkpoint(stage3)[2]["step"] < 3000:
-        train(half, work / "lnd2k", stage3, steps=3000, device=args.device, init=stage2, resume=stage3.is_file())
-    stage4 = work / "stage4.pt"
-    if not stage4.is_file() or load_checkpoint(stage4)[2]["step"] < 7500:
-        train(half, work / "lnd4k", stage4, steps=7500, device=args.device, init=stage3, resume=stage4.is_file())
-    stage5 = work / "stage5.pt"
-    if not stage5.is_file() or load_checkpoint(stage5)[2]["step"] < 10000:
-        train(half, work / "lnd8k_mix", stage5, steps=10000, device=args.device, init=stage4, resume=stage5.is_file())
+    # stages 2-5: (config, data, steps), each from the previous stage's weights; resumed when cut short
+    prev = stage1
+    for k, (stage_cfg, data, steps) in enumerate(((lite, "lnd2k", 3500), (half, "lnd2k", 3000), (half, "lnd4k", 7500),
+                                            (half, "lnd8k_mix", 10000)), start=2):
+        stage = work / f"stage{k}.pt"
+        if not stage.is_file() or load_checkpoint(stage)[2]["step"] < steps:
+            train(stage_cfg, work / data, stage, steps=steps, device=args.device, init=prev, resume=stage.is_file())
+        prev = stage
 
-    model, cfg, blob = load_checkpoint(stage5)
+    model, cfg, blob = load_checkpoint(prev)
     models = REPO / "models"
     models.mkdir(exist_ok=True)
     save_checkpoint(models / "default.pt", model, cfg, blob["step"], int8=True)
-    shutil.copy(stage5.with_suffix(".curves.png"), models / "default.curves.png")
+    shutil.copy(prev.with_suffix(".curves.png"), models / "default.curves.png")
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
     if not args.skip_eval:
