@@ -132,7 +132,9 @@ def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
                            "color": STATUS_COLOURS.get(s.status, (0.6, 0.6, 0.6, 1.0)), "thickness": 1.0})
         if s.R is None:
             continue
-        ax = project_axes(K, s.R, s.t, 8.0)
+        # OpenCV puts pixel centres on integers, Foxglove on half-integers (its origin is the top-left
+        # pixel's corner); boxes are in edge coordinates already
+        ax = project_axes(K, s.R, s.t, 8.0) + 0.5
         if np.all(np.isfinite(ax)):
             for k in range(3):
                 points.append({"points": [ax[0], ax[k + 1]], "type": "line_list", "color": axis_rgb[k],
@@ -143,8 +145,11 @@ def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
 
 
 def _video_frames(path: Path):
-    """read_video_frames with decoding failures mid-stream (truncated, corrupt) as InputError."""
-    it = read_video_frames(path)
+    """read_video_frames with opening and decoding failures (truncated, corrupt) as InputError."""
+    try:
+        it = read_video_frames(path)
+    except ValueError as e:
+        raise InputError(str(e)) from None
     while True:
         try:
             item = next(it)
@@ -153,6 +158,40 @@ def _video_frames(path: Path):
         except ValueError as e:
             raise InputError(str(e)) from None
         yield item
+
+
+def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Path, opts: AnnotateOptions,
+                   size: tuple[int, int], specs: list[PartSpec]) -> None:
+    """Refuse, before any file is opened, outputs that would overwrite an input or one another, and
+    overlay or TUM settings their writers would only refuse after the MCAP had been started."""
+    from surftrack.io.overlay import VIDEO_SUFFIXES as OVERLAY_SUFFIXES
+    from surftrack.io.tum import tum_filename
+
+    taken = {Path(p).resolve(): what for what, p in (("the input video", video), ("the boxes", boxes),
+                                                     ("the camera file", camera), ("the model", model))}
+    for what, p in (("the MCAP", out), ("--overlay", opts.overlay), ("--joints-csv", opts.joints_csv)):
+        if p is None:
+            continue
+        r = Path(p).resolve()
+        if r in taken:
+            raise InputError(f"{p}: {what} would overwrite {taken[r]}")
+        taken[r] = what
+    if opts.overlay is not None:
+        if Path(opts.overlay).suffix.lower() not in OVERLAY_SUFFIXES:
+            raise InputError(f"{opts.overlay}: --overlay must end in one of {', '.join(OVERLAY_SUFFIXES)}")
+        if size[0] % 2 or size[1] % 2:
+            raise InputError(f"{video}: --overlay needs an even width and height (H.264 4:2:0); the video is "
+                             f"{size[0]}x{size[1]}")
+    if opts.export_tum is not None:
+        files: dict[str, str] = {}
+        for s in specs:
+            try:
+                f = tum_filename(s.name)
+            except ValueError as e:
+                raise InputError(f"{boxes}: {e}") from None
+            if f in files:
+                raise InputError(f"{boxes}: parts {files[f]!r} and {s.name!r} would share the TUM file {f}")
+            files[f] = s.name
 
 
 def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
@@ -185,6 +224,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     model, train_cfg, _ = load_checkpoint(model_path, opts.device or "cpu")
     specs, notes = match_parts(doc, model, str(boxes))
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
+    _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)
     estimator = PoseEstimator(model, opts.config.preset, device=opts.device, crop_size=train_cfg.data.crop,
                               box_scale=train_cfg.data.scale)
     tracker = Tracker(estimator, cam.K, size, specs, opts.config)
@@ -225,6 +265,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
         bar = tqdm(total=info.frames or None, unit="frame", desc=video.name, disable=not opts.progress)
         wall0 = time.perf_counter()
+        index, read_to_end = -1, False
+        shown: set[str] = set()  # parts whose mesh is in the 3D scene
         try:
             frames = _video_frames(video)
             for index, (t_s, frame) in enumerate(frames):
@@ -244,8 +286,6 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 if t_first is None:
                     t_first = t_s
                     writer.camera_calibration(t_s, cam.K, info.width, info.height)
-                    writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
-                                              for s in specs})
                 t0 = time.perf_counter()
                 states = tracker.step(frame, t_s, per_frame.get(index))
                 timing["track_s"] += time.perf_counter() - t0
@@ -256,6 +296,14 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     conf_sum[s.spec.name] += s.confidence
                 if posed:
                     writer.poses(t_s, posed)
+                # 3D meshes: shown while a part has a pose, deleted while it has none
+                appeared, gone = set(posed) - shown, shown - set(posed)
+                if appeared:
+                    writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
+                                              for s in specs if s.name in appeared})
+                if gone:
+                    writer.scene_deletions(t_s, sorted(gone))
+                shown = set(posed)
                 if opts.mcap_images:
                     _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
                                            [cv2.IMWRITE_JPEG_QUALITY, 85])
@@ -283,11 +331,18 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 n_done += 1
                 bar.update(1)
                 bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
+            else:
+                read_to_end = True
         finally:
             bar.close()
             wall = time.perf_counter() - wall0
     if n_done == 0:
         raise InputError(f"{video}: no frame between --start and --end")
+    beyond = sorted(k for k in per_frame if k > index)
+    if read_to_end and beyond:
+        notes.append(f"{boxes}: boxes for {len(beyond)} frame(s) after the video's last frame ({index}), from "
+                     f"{beyond[0]}: frames are numbered from 0; were these numbered from 1, or made for "
+                     f"another video?")
     outputs = {"mcap": str(out)}
     if opts.overlay is not None:
         outputs["overlay"] = str(opts.overlay)
@@ -314,6 +369,12 @@ def video_jobs(video: str | Path, boxes: str | Path, camera: str | Path | None,
     vids = sorted(p for p in video.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not vids:
         raise InputError(f"{video}: folder holds no video ({', '.join(VIDEO_SUFFIXES)})")
+    stems: dict[str, str] = {}
+    for v in vids:
+        if v.stem in stems:
+            raise InputError(f"{video}: {stems[v.stem]} and {v.name} would share {v.stem}.json and {v.stem}.mcap; "
+                             f"rename one")
+        stems[v.stem] = v.name
     bdir = Path(boxes)
     if not bdir.is_dir():
         raise InputError(f"{bdir}: with a folder of videos, --boxes must be a folder of <video stem>.json files")

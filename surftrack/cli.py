@@ -308,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except errors as e:
-        print(f"surftrack: error: {e}", file=sys.stderr)
+        lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+        print(f"surftrack: error: {'; '.join(lines)}", file=sys.stderr)  # one line, whatever raised it
         return 2
     except KeyboardInterrupt:
         print("surftrack: interrupted", file=sys.stderr)

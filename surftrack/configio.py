@@ -39,6 +39,15 @@ def build_dataclass(cls: type, data: Any, where: str, error: type[Exception] = V
         raise error(f"{where}: {e}") from None
 
 
+def yaml_problem(e: Exception) -> str:
+    """One line for a YAML parse or file error (PyYAML's own message spans several, with a caret
+    drawing): the problem and where it is."""
+    if isinstance(e, yaml.MarkedYAMLError) and e.problem_mark is not None:
+        m = e.problem_mark
+        return f"{e.problem or e.context} at line {m.line + 1}, column {m.column + 1}"
+    return " ".join(str(e).split())
+
+
 def read_config_yaml(path: str | Path, kind: str, what: str, error: type[Exception]) -> tuple[Path, Any]:
     """(resolved path, parsed YAML) of a config file; a bare name like ``lite`` means
     ``configs/<kind>/lite.yaml``. Unreadable files raise ``error`` naming the file and ``what`` it is."""
@@ -50,4 +59,4 @@ def read_config_yaml(path: str | Path, kind: str, what: str, error: type[Excepti
     try:
         return p, yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
-        raise error(f"{p}: cannot read {what}: {e}") from None
+        raise error(f"{p}: cannot read {what}: {yaml_problem(e)}") from None

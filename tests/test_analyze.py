@@ -23,7 +23,7 @@ def write_log(path):
         for i in range(N):
             t = i / FPS
             w.pose("shaft", t, R, np.array([10.0, -5.0, 80.0]) + SHAFT_V * t)
-            w.status(t, "shaft", "tracking", 0.9)
+            w.status(t, "shaft", "keyframe" if i % 2 == 0 else "tracking", 0.9)  # both are measured poses
             jaw = np.array([0.0, 0.0, 60.0]) + JAW_V * t + (100.0 if i >= 10 else 0.0)
             if i != 8:
                 w.pose("jaw", t, R, jaw)

@@ -191,3 +191,17 @@ def test_bad_inputs(tmp_path):
             w.pose("a", -1.0, np.eye(3), [0, 0, 0])
         with pytest.raises(ValueError):
             w.pose("a", 0.0, np.eye(3), [0, 0])
+
+
+def test_status_json_is_strict(tmp_path):
+    """JSON has no NaN or infinity (strict readers such as Foxglove's reject them): non-finite extras are
+    written as null, a non-finite confidence is refused."""
+    path = tmp_path / "s.mcap"
+    with TrackWriter(path, {}) as w:
+        w.status(0.0, "jaw", "tracking", 0.5, {"rms_px": float("inf"), "d": [1.0, float("nan")], "n": 3})
+        with pytest.raises(ValueError, match="confidence"):
+            w.status(0.1, "jaw", "tracking", float("nan"))
+    with open(path, "rb") as f:
+        (_, _, msg), = list(make_reader(f).iter_messages(topics=["/parts/jaw/status"]))
+    doc = json.loads(msg.data, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    assert doc["extra"] == {"rms_px": None, "d": [1.0, None], "n": 3} and doc["confidence"] == 0.5

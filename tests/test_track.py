@@ -184,7 +184,7 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     assert rc == 0, captured.err
     assert "not in the model" in captured.out
     n_frames = len(_frames(clip))
-    statuses, times, poses, topics = {}, {}, 0, set()
+    statuses, times, poses, topics, scene = {}, {}, 0, set(), {}
     with open(out, "rb") as f:
         reader = make_reader(f)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
@@ -199,6 +199,8 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
             elif channel.topic.endswith("/pose"):
                 poses += 1
                 assert abs(msg["pose"]["position"]["z"]) < 1.0  # metres
+            elif channel.topic == "/parts/meshes":
+                scene.setdefault(message.log_time, []).append(msg)
     assert set(statuses) == {f"large_needle_driver.0.{p}" for p in ("shaft", "wrist", "jaw_left", "jaw_right")}
     for part, st in statuses.items():
         assert len(st) == n_frames and set(st) <= {"init", "keyframe", "tracking", "predicted", "lost"}
@@ -207,6 +209,15 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     n_posed = sum(s in ("keyframe", "tracking", "predicted") for st in statuses.values() for s in st)
     assert poses == n_posed > n_frames
     assert {"/tf", "/camera/calibration", "/camera/image", "/camera/annotations", "/parts/meshes"} <= topics
+    # a part's mesh is in the 3D scene exactly while it has a pose (a lost part's is deleted)
+    shown, deleted = set(), 0
+    for i, t in enumerate(times[next(iter(times))]):
+        for msg in scene.get(t, []):
+            shown |= {e["id"] for e in msg["entities"]}
+            shown -= {d["id"] for d in msg["deletions"]}
+            deleted += len(msg["deletions"])
+        assert shown == {p for p, st in statuses.items() if st[i] in ("keyframe", "tracking", "predicted")}, i
+    assert deleted > 0, "the clip's tool leaves the view: its meshes are deleted"
     assert "video.mp4" in meta["surftrack"]["video"] and "tiny.pt" in meta["surftrack"]["model"]
     # joint angles fitted on every frame with a posed part, in the MCAP (radians) and the CSV (degrees)
     assert "/instruments/large_needle_driver.0/joints" in topics

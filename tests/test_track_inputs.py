@@ -142,6 +142,47 @@ def test_unwritable_output_and_bad_options(clip, tiny_ckpt, tmp_path, capsys):
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", str(cfg)], "t.yaml", "keyframe_evry")
 
 
+def test_outputs_never_overwrite_inputs_or_the_last_run(clip, tiny_ckpt, tmp_path, capsys):
+    """An output named like an input is refused before anything is opened (the input stays whole), and so
+    is an overlay the writer would refuse, before the previous run's MCAP is touched; a malformed YAML
+    config is one line too."""
+    video = tmp_path / "clip.mp4"
+    shutil.copy(clip / "video.mp4", video)
+    size = video.stat().st_size
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, video=str(video)) + ["--overlay", str(video)],
+           "clip.mp4", "--overlay would overwrite the input video")
+    assert video.stat().st_size == size
+    boxes = tmp_path / "det.json"
+    shutil.copy(clip / "det.json", boxes)
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(boxes)}) + ["--joints-csv", str(boxes)],
+           "--joints-csv would overwrite the boxes")
+    assert json.loads(boxes.read_text()) == _det(clip)
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"-o": str(tmp_path / "t.mcap")})
+           + ["--overlay", str(tmp_path / "t.mcap")], "t.mcap", "--overlay would overwrite the MCAP")
+    last = tmp_path / "out.mcap"
+    last.write_bytes(b"the last run")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--overlay", str(tmp_path / "o.avi")], "o.avi", ".mp4")
+    assert last.read_bytes() == b"the last run"
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("preset: [fast\nkeyframe_every: 2\n")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", str(cfg)], "bad.yaml", "line 2, column 15")
+
+
+def test_boxes_past_the_last_frame_get_a_note(clip, tiny_ckpt, tmp_path, capsys):
+    d = _det(clip)
+    n = len(d["frames"])
+    dt = d["frames"][1]["time"] - d["frames"][0]["time"]
+    for f in d["frames"]:  # numbered from 1, as an ffmpeg frame dump would be (the times follow)
+        f["index"] += 1
+        f["time"] = f["index"] * dt
+    p = tmp_path / "det1.json"
+    p.write_text(json.dumps(d))
+    rc = main(_base(clip, tiny_ckpt, tmp_path, **{"--boxes": str(p)}))
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert f"boxes for 1 frame(s) after the video's last frame ({n - 1}), from {n}" in out, out
+
+
 def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp_path, capsys):
     vids, boxes = tmp_path / "videos", tmp_path / "boxes"
     vids.mkdir()
@@ -157,6 +198,9 @@ def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp
     assert sorted(p.name for p in out.iterdir()) == ["a.mcap", "b.mcap"]
     (boxes / "b.json").unlink()
     _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"], "b.json")
+    shutil.copy(clip / "video.mp4", vids / "a.mov")
+    _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"],
+           "a.mov", "a.mcap")
 
 
 def test_coco_detections_are_accepted(clip, tiny_ckpt, tmp_path, capsys):

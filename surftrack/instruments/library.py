@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 import yaml
 
+from surftrack.configio import yaml_problem
 from surftrack.geometry import transform_points
 from surftrack.instruments.kinematics import JOINT_NAMES, JointLimits, JointState, KinematicChain, PartJoint
 from surftrack.instruments.part import Material, Part
@@ -99,7 +100,7 @@ def load_instrument_file(path: str | Path) -> Instrument:
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as e:
-        raise InstrumentError(f"{path}: cannot read instrument description: {e}") from None
+        raise InstrumentError(f"{path}: cannot read instrument description: {yaml_problem(e)}") from None
     if not isinstance(doc, dict) or "name" not in doc or not doc.get("parts"):
         raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
     if not isinstance(doc.get("aliases", []), list):

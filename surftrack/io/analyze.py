@@ -4,7 +4,8 @@
 
 * ``/parts/<name>/pose`` (``foxglove.PoseInFrame``, metres; converted back to millimetres here),
 * ``/parts/<name>/status`` (``surftrack.PartStatus``): a frame counts as tracked when the part has a
-  pose at that time and its status there, if one was logged, is in ``tracked_statuses``,
+  pose at that time and its status there, if one was logged, is in ``tracked_statuses`` (by default
+  "keyframe" and "tracking": measured poses; "predicted" ones are the filter's extrapolation),
 * ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees).
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
@@ -75,7 +76,7 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     }
 
 
-def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = ("tracking",)) -> dict:
+def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = ("keyframe", "tracking")) -> dict:
     """Summary of a TrackWriter MCAP file::
 
         {"file": str,

@@ -22,7 +22,8 @@ Units and conventions:
 Topics: ``/parts/<name>/pose`` (PoseInFrame, frame ``camera``), ``/tf`` (FrameTransforms: one message
 per frame holding every part, parent ``camera`` -> child ``<name>``), ``/parts/<name>/status``,
 ``/camera/calibration``, ``/camera/image`` (JPEG CompressedImage), ``/camera/annotations``,
-``/parts/meshes`` (SceneUpdate: one frame-locked entity per part in the part's frame),
+``/parts/meshes`` (SceneUpdate: one frame-locked entity per part in the part's frame; deleted while the
+part is lost),
 ``/instruments/<instrument>/joints`` (JointStates: the fitted joint variables, radians).
 
 The file is always finished (summary, index, statistics written) by ``close()`` or on leaving the
@@ -333,7 +334,7 @@ class TrackWriter:
         seq = self._seq.get(cid, 0)
         self._seq[cid] = seq + 1
         self._writer.add_message(channel_id=cid, log_time=ns, publish_time=ns, sequence=seq,
-                                 data=json.dumps(msg, separators=(",", ":")).encode())
+                                 data=json.dumps(msg, separators=(",", ":"), allow_nan=False).encode())
 
     # ---------------------------------------------------------------- messages
     def pose(self, topic_part_name: str, time_s: float, R, t_mm, frame_id: str | None = None) -> None:
@@ -368,8 +369,8 @@ class TrackWriter:
         ns = time_to_ns(time_s)
         self._write(f"/parts/{name}/status", "surftrack.PartStatus", ns, {
             "timestamp": _stamp(ns), "part": name, "status": str(status),
-            "confidence": float(confidence),
-            "extra": json.loads(json.dumps(dict(extra or {}), default=_jsonable))})
+            "confidence": _finite(float(confidence), "confidence"),
+            "extra": _nan_to_null(json.loads(json.dumps(dict(extra or {}), default=_jsonable)))})
 
     def joint_states(self, time_s: float, instrument_name: str, names: Sequence[str],
                      positions: Sequence[float | None],
@@ -489,6 +490,31 @@ class TrackWriter:
                     "points": [_vec3(p) for p in v], "color": _color(color), "colors": [],
                     "indices": f.astype(np.int64).reshape(-1).tolist()}]})
         self._write("/parts/meshes", "foxglove.SceneUpdate", ns, {"deletions": [], "entities": ents})
+
+    def scene_deletions(self, time_s: float, names: Sequence[str]) -> None:
+        """SceneUpdate on ``/parts/meshes`` deleting the entities of the parts ``names`` (type 0: matching
+        id). A lost part's mesh would otherwise stay at its last pose; :meth:`scene_meshes` shows it again."""
+        ns = time_to_ns(time_s)
+        dels = [{"timestamp": _stamp(ns), "type": 0, "id": _check_name(n)} for n in names]
+        self._write("/parts/meshes", "foxglove.SceneUpdate", ns, {"deletions": dels, "entities": []})
+
+
+def _finite(v: float, what: str) -> float:
+    if not math.isfinite(v):
+        raise ValueError(f"{what} must be finite, got {v!r}")
+    return v
+
+
+def _nan_to_null(o):
+    """``o`` (parsed JSON) with NaN and infinities as None: JSON has no such numbers, and strict readers
+    (Foxglove's) reject a file that writes them."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _nan_to_null(v) for k, v in o.items()}
+    if isinstance(o, list):
+        return [_nan_to_null(v) for v in o]
+    return o
 
 
 def _jsonable(o):

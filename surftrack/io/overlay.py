@@ -61,7 +61,7 @@ _SHIFT = 4  # fixed-point bits for sub-pixel drawing
 _ONE = 1 << _SHIFT
 _MAX_CANVAS_IMAGES = 4.0  # outline canvas at most this many image areas, else fill triangles instead
 _GUARD_PX = 1e6  # triangles reaching beyond this are clipped to the image before filling (int32 safety)
-_VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 
 
 # --------------------------------------------------------------------------------------------- checks
@@ -535,8 +535,8 @@ def draw_overlay(frame_rgb: np.ndarray, K: np.ndarray, parts: Sequence[PartOverl
 
 def _check_writable(path: Path) -> None:
     """Fail early, naming the path: the encoder only opens its file at the first frame."""
-    if path.suffix.lower() not in _VIDEO_SUFFIXES:
-        raise ValueError(f"overlay video {str(path)!r}: the name must end in one of {', '.join(_VIDEO_SUFFIXES)}")
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"overlay video {str(path)!r}: the name must end in one of {', '.join(VIDEO_SUFFIXES)}")
     try:
         # replaces an older file at once: a stale video must not pass for this run's
         with open(path, "wb"):

@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from surftrack.configio import build_dataclass
+from surftrack.configio import build_dataclass, yaml_problem
 
 Range = tuple[float, float]
 
@@ -180,7 +180,7 @@ def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] 
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"{p}: cannot read synthesis config: {e}") from None
+        raise ConfigError(f"{p}: cannot read synthesis config: {yaml_problem(e)}") from None
     if isinstance(data, dict):
         _resolve_tissue_paths(data, p.parent)
         data.update(overrides or {})
