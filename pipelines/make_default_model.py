@@ -6,14 +6,15 @@ Steps (each resumable: an existing output is reused):
 
 1. ``surftrack synth``: 400 LND images (seed 11), 2,000 (seed 12) and 2,000 more (seed 15) with the
    default synthesis config (roll within +-30 deg of ``roll_zero: view``); 2,000 with ``roll_zero:
-   across`` (seed 16) and 2,000 with the roll anywhere in +-180 deg (seed 18). Held out for evaluation:
-   100 images of each kind (seeds 13, 17 and 19).
+   across`` (seed 16), 2,000 with the roll anywhere in +-180 deg (seed 18) and 2,000 more of those
+   (seed 20). Held out for evaluation: 100 images of each kind (seeds 13, 17 and 19).
 2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
    2,000 steps on the 400 images with a constant learning rate (``schedule: constant``); 3,500 steps on
    the first 2,000 images with the lite config's cosine decay; 3,000 more on them at half the learning
    rates (1.5e-4 / 1.5e-5), cosine again; 7,500 steps on both ``view`` sets (4,000 images, joined as one
-   BOP folder whose scene folders link to theirs) at the same rates; 10,000 steps on all four 2,000-image
-   sets (8,000 images) at the same rates. Each stage holds out its own validation images from its data,
+   BOP folder whose scene folders link to theirs) at the same rates; 10,000 steps on the first four
+   2,000-image sets (8,000 images) at the same rates; 10,000 steps on all five (10,000 images) at the same
+   rates. Each stage holds out its own validation images from its data,
    so most of the later stages' were training images of earlier ones: their validation curves flatter;
    the held-out evaluation below is independent of all stages.
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
@@ -21,8 +22,8 @@ Steps (each resumable: an existing output is reused):
 4. ``surftrack eval`` (fast preset) on the three held-out sets; the tables go to ``models/default.eval.md``
    and, by hand, into ``models/MODEL_CARD.md``.
 
-On the 2-core CPU machine of the model card the whole recipe takes about 7 hours (synthesis ~25 min,
-training ~6 h 20 min, evaluation a few minutes).
+On the 2-core CPU machine of the model card the whole recipe takes about 9 hours (synthesis ~30 min,
+training ~8 h 10 min, evaluation a few minutes).
 """
 
 from __future__ import annotations
@@ -95,20 +96,22 @@ def main(argv: list[str] | None = None) -> int:
         _synth(work / name, n, seed)
     for name, n, seed in (("lnd_across2k", 2000, 16), ("lnd_across_test100", 100, 17)):
         _synth(work / name, n, seed, roll_zero="across")
-    for name, n, seed in (("lnd_fullroll2k", 2000, 18), ("lnd_fullroll_test100", 100, 19)):
+    for name, n, seed in (("lnd_fullroll2k", 2000, 18), ("lnd_fullroll2k_b", 2000, 20), ("lnd_fullroll_test100", 100, 19)):
         _synth(work / name, n, seed, roll_deg=(-180.0, 180.0))
     _join(work / "lnd4k", [work / "lnd2k", work / "lnd2k_b"])
     _join(work / "lnd8k_mix", [work / "lnd2k", work / "lnd2k_b", work / "lnd_across2k", work / "lnd_fullroll2k"])
+    _join(work / "lnd10k_mix", [work / "lnd2k", work / "lnd2k_b", work / "lnd_across2k", work / "lnd_fullroll2k",
+                                work / "lnd_fullroll2k_b"])
 
     lite = load_train_config("lite")
     stage1 = work / "stage1.pt"
     if not stage1.is_file():
         train(lite.replace(optim={"schedule": "constant"}), work / "lnd400", stage1, steps=2000, device=args.device)
     half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
-    # stages 2-5: (config, data, steps), each from the previous stage's weights; resumed when cut short
+    # stages 2-6: (config, data, steps), each from the previous stage's weights; resumed when cut short
     prev = stage1
     for k, (stage_cfg, data, steps) in enumerate(((lite, "lnd2k", 3500), (half, "lnd2k", 3000), (half, "lnd4k", 7500),
-                                            (half, "lnd8k_mix", 10000)), start=2):
+                                                  (half, "lnd8k_mix", 10000), (half, "lnd10k_mix", 10000)), start=2):
         stage = work / f"stage{k}.pt"
         if not stage.is_file() or load_checkpoint(stage)[2]["step"] < steps:
             train(stage_cfg, work / data, stage, steps=steps, device=args.device, init=prev, resume=stage.is_file())
