@@ -164,7 +164,7 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
                    size: tuple[int, int], specs: list[PartSpec]) -> None:
     """Refuse, before any file is opened, outputs that would overwrite an input or one another, and
     overlay or TUM settings their writers would only refuse after the MCAP had been started."""
-    from surftrack.io.overlay import VIDEO_SUFFIXES as OVERLAY_SUFFIXES
+    from surftrack.io.overlay import check_overlay_video
     from surftrack.io.tum import tum_filename
 
     taken = {Path(p).resolve(): what for what, p in (("the input video", video), ("the boxes", boxes),
@@ -177,11 +177,10 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
             raise InputError(f"{p}: {what} would overwrite {taken[r]}")
         taken[r] = what
     if opts.overlay is not None:
-        if Path(opts.overlay).suffix.lower() not in OVERLAY_SUFFIXES:
-            raise InputError(f"{opts.overlay}: --overlay must end in one of {', '.join(OVERLAY_SUFFIXES)}")
-        if size[0] % 2 or size[1] % 2:
-            raise InputError(f"{video}: --overlay needs an even width and height (H.264 4:2:0); the video is "
-                             f"{size[0]}x{size[1]}")
+        try:
+            check_overlay_video(opts.overlay, *size)
+        except ValueError as e:
+            raise InputError(f"--overlay: {e}") from None
     if opts.export_tum is not None:
         files: dict[str, str] = {}
         for s in specs:
@@ -297,13 +296,13 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 if posed:
                     writer.poses(t_s, posed)
                 # 3D meshes: shown while a part has a pose, deleted while it has none
-                appeared, gone = set(posed) - shown, shown - set(posed)
-                if appeared:
+                now = set(posed)
+                if now - shown:
                     writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
-                                              for s in specs if s.name in appeared})
-                if gone:
-                    writer.scene_deletions(t_s, sorted(gone))
-                shown = set(posed)
+                                              for s in specs if s.name in now - shown})
+                if shown - now:
+                    writer.scene_deletions(t_s, sorted(shown - now))
+                shown = now
                 if opts.mcap_images:
                     _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
                                            [cv2.IMWRITE_JPEG_QUALITY, 85])

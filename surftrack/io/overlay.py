@@ -61,7 +61,7 @@ _SHIFT = 4  # fixed-point bits for sub-pixel drawing
 _ONE = 1 << _SHIFT
 _MAX_CANVAS_IMAGES = 4.0  # outline canvas at most this many image areas, else fill triangles instead
 _GUARD_PX = 1e6  # triangles reaching beyond this are clipped to the image before filling (int32 safety)
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
+_VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 
 
 # --------------------------------------------------------------------------------------------- checks
@@ -533,10 +533,19 @@ def draw_overlay(frame_rgb: np.ndarray, K: np.ndarray, parts: Sequence[PartOverl
 # --------------------------------------------------------------------------------------------- video
 
 
+def check_overlay_video(path: str | Path, width: int, height: int) -> None:
+    """The overlay writer's rules for its file, checkable before anything is opened: a video suffix, and
+    an even frame size (H.264 4:2:0). ``ValueError`` naming the path otherwise."""
+    path = Path(path)
+    if path.suffix.lower() not in _VIDEO_SUFFIXES:
+        raise ValueError(f"overlay video {str(path)!r}: the name must end in one of {', '.join(_VIDEO_SUFFIXES)}")
+    if width % 2 or height % 2:
+        raise ValueError(f"overlay video {str(path)!r}: H.264 4:2:0 needs an even width and height, the video "
+                         f"is {width}x{height}")
+
+
 def _check_writable(path: Path) -> None:
     """Fail early, naming the path: the encoder only opens its file at the first frame."""
-    if path.suffix.lower() not in VIDEO_SUFFIXES:
-        raise ValueError(f"overlay video {str(path)!r}: the name must end in one of {', '.join(VIDEO_SUFFIXES)}")
     try:
         # replaces an older file at once: a stale video must not pass for this run's
         with open(path, "wb"):
@@ -561,6 +570,7 @@ class OverlayWriter:
                  crf: int = 20) -> None:
         self.path = Path(path)
         self.K = _check_K(K)
+        check_overlay_video(self.path, width, height)
         _check_writable(self.path)
         self._video = VideoWriter(self.path, fps, width, height, crf=crf)
 
