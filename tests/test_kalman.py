@@ -148,6 +148,23 @@ def test_outlier_is_gated_and_normal_measurements_pass():
     # gate=False forces the update
     kf.predict(times[44])
     assert kf.update(Rm[44], tm[44] + 50.0, gate=False) is True
+    # a non-finite pose is never fused, gated or not
+    kf.predict(times[45])
+    x = kf.x
+    for forced in (True, False):
+        assert kf.update(Rm[45], tm[45] * np.nan, gate=forced) is False
+    assert np.array_equal(kf.x, x) and np.isfinite(kf.covariance).all()
+
+
+def test_noise_settings_are_checked():
+    for bad, msg in (({"meas_pos_std_mm": 0.0}, "meas_pos_std_mm must be > 0"),
+                     ({"gate_chi2": float("nan")}, "gate_chi2 must be a finite number"),
+                     ({"accel_std_mm_s2": "200"}, "accel_std_mm_s2 must be a finite number"),
+                     ({"max_rejections": 0}, "max_rejections must be >= 1"),
+                     ({"max_rejections": 2.5}, "max_rejections must be an integer")):
+        with pytest.raises(ValueError, match=msg):
+            KalmanConfig(**bad)
+    assert KalmanConfig(max_rejections=3.0).max_rejections == 3
 
 
 def test_lost_after_max_rejections_and_reinit():

@@ -274,5 +274,6 @@ class PoseEstimator:
         ms = {s: ms.get(s, 0.0) for s in STAGES} | ({"keys": ms["keys"]} if "keys" in ms else {})
         ms["total"] = sum(ms.values())
         info = self.model.parts[c.part_index]
-        return PartPose(c.obj_id, info.name, info.instrument, sol.R, sol.t, sol.score, sol.n_inliers, sol.ok, ms,
+        ok = sol.ok and bool(np.isfinite(sol.R).all() and np.isfinite(sol.t).all())
+        return PartPose(c.obj_id, info.name, info.instrument, sol.R, sol.t, sol.score, sol.n_inliers, ok, ms,
                         c.crop_box, c.K_crop, c.image_index, sol.counts)

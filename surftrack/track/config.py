@@ -93,6 +93,13 @@ class TrackConfig:
             raise ValueError(f"kinematic_anchor_weight must be > 0, got {self.kinematic_anchor_weight}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
+        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("flow_floor_mm", "flow_floor_deg", "init_min_score"):
+            if not math.isfinite(getattr(self, name)) or (name != "init_min_score" and getattr(self, name) < 0):
+                raise ValueError(f"{name} must be a finite number{'' if name == 'init_min_score' else ' >= 0'}, "
+                                 f"got {getattr(self, name)}")
 
     def kinematic_config(self) -> KinematicConfig | None:
         """The instrument-consistency settings for :func:`surftrack.pose.kinematic.apply_kinematics`, or

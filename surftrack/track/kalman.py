@@ -33,6 +33,8 @@ Time comes from real timestamps in seconds (variable frame rate); ``predict`` ra
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,6 +71,16 @@ class KalmanConfig:
     init_vel_std_mm_s: float = 100.0
     init_omega_std_rad_s: float = 2.0
     max_rejections: int = 5
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v, kind = getattr(self, f.name), type(f.default)
+            if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                    or (kind is int and not float(v).is_integer())):
+                raise ValueError(f"{f.name} must be {'an integer' if kind is int else 'a finite number'}, got {v!r}")
+            setattr(self, f.name, kind(v))
+            if (v < 1) if kind is int else (v <= 0):
+                raise ValueError(f"{f.name} must be {'>= 1' if kind is int else '> 0'}, got {v}")
 
     def meas_cov(self) -> np.ndarray:
         """Default 6x6 measurement covariance (mm^2 then rad^2)."""
@@ -239,7 +251,7 @@ class PoseKalman:
         z, y, S = self._innovation(R_meas, t_meas, meas_cov)
         d2 = float(y @ np.linalg.solve(S, y))
         self.last_d2 = d2
-        if gate and d2 > self.config.gate_chi2:
+        if not math.isfinite(d2) or (gate and d2 > self.config.gate_chi2):  # a NaN pose is never fused
             self.rejections_in_a_row += 1
             return False
         self.kf.update(z.reshape(6, 1), R=meas_cov)

@@ -204,6 +204,7 @@ class Tracker:
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
         tr.seeded = True
+        tr.unseen = 0
 
     # ------------------------------------------------------------------ the frame step
     def step(self, frame_rgb: np.ndarray, time_s: float,
@@ -333,6 +334,7 @@ class Tracker:
                         why in ("cadence", "box disagreement") or tr.since_meas < 3 * cfg.max_predicted):
                     # inconclusive (too few inliers, or a false box): keep the track on the filter
                     tr.since_keyframe = 0
+                    tr.unseen = 0  # the network saw something: a later "sees nothing" gets its retry
                 elif tr.has_pose and why in ("cadence", "box disagreement") and tr.unseen == 0:
                     # flow still supports the track but the network sees nothing (an occluder, a poor
                     # crop): ask again on the next frame before giving the part up
