@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import shutil
 import sys
 from pathlib import Path
@@ -49,37 +47,6 @@ def _synth(out: Path, images: int, seed: int, **pose) -> None:
     generate_dataset(out, cfg, images, seed=seed, workers=2, progress=True)
 
 
-def _join(out: Path, sources: list[Path]) -> None:
-    """One BOP folder whose train scenes are relative links to those of ``sources`` (renumbered in
-    order), with the first source's models and a ``dataset_card.json`` that names the parts (training reads
-    the instrument names from it) and the sources. The sources must hold the same models and objects.
-    Built under a temporary name and renamed, so an interrupted join is never reused; an existing join is
-    checked against the sources."""
-    scenes = [d for src in sources for d in sorted((src / "train").iterdir()) if d.is_dir()]
-    if out.is_dir():
-        have = sorted((out / "train").iterdir()) if (out / "train").is_dir() else []
-        if [d.resolve() for d in have] != [d.resolve() for d in scenes]:
-            raise SystemExit(f"{out}: its scenes are not those of {', '.join(map(str, sources))}; remove it")
-        return
-    cards = [json.loads((src / "dataset_card.json").read_text()) for src in sources]
-    names = sorted(f.name for f in (sources[0] / "models").iterdir())
-    for src, card in zip(sources[1:], cards[1:]):
-        if (sorted(f.name for f in (src / "models").iterdir()) != names
-                or any((src / "models" / n).read_bytes() != (sources[0] / "models" / n).read_bytes() for n in names)
-                or card["objects"] != cards[0]["objects"]):
-            raise SystemExit(f"{src}: its models differ from those of {sources[0]}")
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "train").mkdir(parents=True)
-    (tmp / "models").symlink_to(os.path.relpath(sources[0] / "models", tmp), target_is_directory=True)
-    for n, scene in enumerate(scenes):
-        (tmp / "train" / f"{n:06d}").symlink_to(os.path.relpath(scene, tmp / "train"), target_is_directory=True)
-    card = {"joined": [str(src) for src in sources], "objects": cards[0]["objects"],
-            "images": sum(c.get("images", 0) for c in cards), "sources": cards}
-    (tmp / "dataset_card.json").write_text(json.dumps(card, indent=1))
-    tmp.rename(out)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="runs/default", help="working folder (datasets, full checkpoints)")
@@ -90,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
 
     from surftrack.model import load_checkpoint, load_train_config, save_checkpoint
+    from surftrack.data.join import join_datasets
     from surftrack.model.train import train
 
     for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd2k_b", 2000, 15), ("lnd_test100", 100, 13)):
@@ -98,10 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         _synth(work / name, n, seed, roll_zero="across")
     for name, n, seed in (("lnd_fullroll2k", 2000, 18), ("lnd_fullroll2k_b", 2000, 20), ("lnd_fullroll_test100", 100, 19)):
         _synth(work / name, n, seed, roll_deg=(-180.0, 180.0))
-    _join(work / "lnd4k", [work / "lnd2k", work / "lnd2k_b"])
-    _join(work / "lnd8k_mix", [work / "lnd2k", work / "lnd2k_b", work / "lnd_across2k", work / "lnd_fullroll2k"])
-    _join(work / "lnd10k_mix", [work / "lnd2k", work / "lnd2k_b", work / "lnd_across2k", work / "lnd_fullroll2k",
-                                work / "lnd_fullroll2k_b"])
+    view, across, roll = [work / "lnd2k", work / "lnd2k_b"], [work / "lnd_across2k"], [work / "lnd_fullroll2k"]
+    join_datasets(work / "lnd4k", view)
+    join_datasets(work / "lnd8k_mix", view + across + roll)
+    join_datasets(work / "lnd10k_mix", view + across + roll + [work / "lnd_fullroll2k_b"])
 
     lite = load_train_config("lite")
     stage1 = work / "stage1.pt"

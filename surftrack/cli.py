@@ -1,13 +1,16 @@
 """The ``surftrack`` command line.
 
 The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAMERA.json`` (the same as
-``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, train, eval, analyze.
+``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, join, train, eval, analyze.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from surftrack import __version__
@@ -23,6 +26,28 @@ def _seed(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"seeds must be >= 0, got {value}")
     return value
+
+
+@contextlib.contextmanager
+def _use_instruments(files: list[str] | None) -> Iterator[None]:
+    """``--instrument YAML`` (repeatable): check each description and make it known to the command (and
+    to its worker processes) through ``$SURFTRACK_INSTRUMENTS``, restored afterwards."""
+    from surftrack.instruments import INSTRUMENTS_ENV, load_instrument_file
+
+    before = os.environ.get(INSTRUMENTS_ENV)
+    for f in files or []:
+        if not Path(f).is_file():
+            raise CLIError(f"{f}: --instrument: no such instrument description (a YAML file)")
+        load_instrument_file(f)  # a malformed description fails here, naming the file
+    if files:
+        os.environ[INSTRUMENTS_ENV] = os.pathsep.join([*(str(Path(f).resolve()) for f in files), *filter(None, [before])])
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(INSTRUMENTS_ENV, None)
+        else:
+            os.environ[INSTRUMENTS_ENV] = before
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -129,9 +154,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise CLIError(f"--max-images must be positive, got {args.max_images}")
     if not 0.0 < args.occlusion_threshold <= 1.0:
         raise CLIError(f"--occlusion-threshold must be in (0, 1], got {args.occlusion_threshold}")
-    r = evaluate(args.model, args.data, split=args.split, preset=args.preset, max_images=args.max_images,
-                 occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet,
-                 kinematic=args.kinematic)
+    with _use_instruments(args.instrument):
+        r = evaluate(args.model, args.data, split=args.split, preset=args.preset, max_images=args.max_images,
+                     occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet,
+                     kinematic=args.kinematic)
     paths = write_eval_outputs(r, args.out)
     print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
           f"preset {r['preset']}{', instrument-consistent poses' if args.kinematic else ''}, "
@@ -168,7 +194,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
                                start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
                                mcap_images=args.images, progress=not args.quiet, joints=not args.no_joints,
                                joints_csv=args.joints_csv)
-        s = annotate_video(video, boxes, opts)
+        with _use_instruments(args.instrument):
+            s = annotate_video(video, boxes, opts)
         for note in s["notes"]:
             print(f"note: {note}")
         print(f"surftrack: {s['video']}: {s['frames']} frames in {s['seconds']:.1f} s ({s['fps']:.1f} frames/s)")
@@ -176,6 +203,15 @@ def _cmd_track(args: argparse.Namespace) -> int:
             fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
             print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
         print("wrote " + ", ".join(s["outputs"].values()))
+    return 0
+
+
+def _cmd_join(args: argparse.Namespace) -> int:
+    from surftrack.data.join import join_datasets
+
+    n = join_datasets(args.out, args.sources)
+    print(f"{args.out}: {n} scenes of {len(args.sources)} datasets (links, no copies); train on it with "
+          f"`surftrack train --data {args.out}`")
     return 0
 
 
@@ -227,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--seed", type=_seed, default=0)
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
     sc.set_defaults(func=_cmd_synth_clip)
+    jo = sub.add_parser("join", help="join BOP datasets of the same instruments into one training folder (links)")
+    jo.add_argument("sources", nargs="+", help="dataset folders (e.g. made by `surftrack synth` with different configs)")
+    jo.add_argument("--out", required=True, help="the joined folder (created)")
+    jo.set_defaults(func=_cmd_join)
     tr = sub.add_parser("train", help="train a SurfSurg6D model on a BOP dataset")
     tr.add_argument("--config", default="lite", help="training YAML or a name in configs/train (default: lite)")
     tr.add_argument("--data", required=True, help="BOP dataset folder (e.g. made by `surftrack synth`)")
@@ -250,6 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--kinematic", action="store_true",
                     help="evaluate instrument-consistent poses: each instrument's articulated configuration "
                          "fitted to its parts' estimates (surftrack.pose.kinematic), as the tracker outputs them")
+    ev.add_argument("--instrument", action="append", metavar="YAML",
+                    help="an instrument description the built-in ones lack, for --kinematic (repeatable)")
     ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_eval)
@@ -273,6 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
     tk.add_argument("--joints-csv", metavar="CSV", help="also write the fitted joint angles per frame as CSV")
     tk.add_argument("--no-joints", action="store_true", help="skip the per-frame joint-angle fit")
+    tk.add_argument("--instrument", action="append", metavar="YAML",
+                    help="your instrument's description (the YAML its model was trained from), for joint angles "
+                         "and the instrument-consistent fit; repeatable")
     tk.add_argument("--quiet", action="store_true", help="no progress bar")
     tk.set_defaults(func=_cmd_track)
 

@@ -28,6 +28,7 @@ from surftrack.data import (
     pose_in_crop,
     warp_image,
 )
+from surftrack.data.join import join_datasets
 from surftrack.geometry import PinholeCamera, rotation_about, se3, transform_points
 from surftrack.render import Renderer, worker_context
 from surftrack.synth.bop_writer import bbox_xywh
@@ -459,3 +460,25 @@ def test_mixed_sampler_hits_the_ratio_in_every_batch(ratio, bs):
     assert len(raw) == 10 and raw.max() < la + lb
     with pytest.raises(ValueError, match="empty"):
         mixed_indices(0, 5, 10)
+
+
+def test_join_links_the_scenes_of_several_datasets(root, tmp_path):
+    """`surftrack join`: the joined folder reads as one dataset with every source's images; sources with
+    other models, and an existing folder joining something else, are refused naming the folder."""
+    from surftrack.cli import main
+
+    other = copy_dataset(root, tmp_path / "other")
+    n_one = len(BopDataset(root, "train", min_visib_fract=0.1).instances)
+    assert main(["join", "--out", str(tmp_path / "both"), str(root), str(other)]) == 0
+    joined = BopDataset(tmp_path / "both", "train", min_visib_fract=0.1)
+    assert len(joined.instances) == 2 * n_one
+    card = json.loads((tmp_path / "both" / "dataset_card.json").read_text())
+    assert card["objects"] == json.loads((root / "dataset_card.json").read_text())["objects"]
+    assert main(["join", "--out", str(tmp_path / "both"), str(root), str(other)]) == 0  # the same join again
+    with pytest.raises(DatasetError, match="does not join exactly these"):
+        join_datasets(tmp_path / "both", [root])
+    ply = next((other / "models").glob("*.ply"))
+    ply.write_bytes(ply.read_bytes() + b"\n")
+    with pytest.raises(DatasetError, match="other: its models differ"):
+        join_datasets(tmp_path / "again", [root, other])
+    assert not (tmp_path / "again").exists()

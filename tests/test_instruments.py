@@ -473,3 +473,23 @@ def test_unreadable_descriptions(tmp_path):
         load_instrument_file(path)
     with pytest.raises(InstrumentError, match="unknown instrument"):
         load_instrument("no_such_instrument")
+
+
+def test_user_instruments_from_the_search_path(tmp_path, monkeypatch):
+    """``$SURFTRACK_INSTRUMENTS`` (files or folders) makes a user's description known by name, beside the
+    built-in ones; an entry that does not exist is an error naming it."""
+    from surftrack.instruments import INSTRUMENTS_ENV, InstrumentError, list_instruments, load_instrument
+
+    lnd_yaml = Path(load_instrument("lnd").source).read_text()
+    folder = tmp_path / "tools"
+    folder.mkdir()
+    (folder / "my_tool.yaml").write_text(lnd_yaml.replace("name: large_needle_driver", "name: my_tool")
+                                         .replace("aliases: [lnd]", "aliases: [mt]"))
+    with pytest.raises(InstrumentError, match="unknown instrument 'my_tool'"):
+        load_instrument("my_tool")
+    monkeypatch.setenv(INSTRUMENTS_ENV, str(folder))
+    assert load_instrument("mt").name == "my_tool" and "my_tool" in list_instruments()
+    assert load_instrument("lnd").name == "large_needle_driver"
+    monkeypatch.setenv(INSTRUMENTS_ENV, str(tmp_path / "missing.yaml"))
+    with pytest.raises(InstrumentError, match="missing.yaml: instrument description not found"):
+        load_instrument("my_tool")

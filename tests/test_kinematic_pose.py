@@ -106,7 +106,7 @@ def test_apply_kinematics_leaves_what_it_cannot_fit(lnd, monkeypatch):
     out = apply_kinematics(split, [0, 1, 2, 3], _infos(lnd))  # four instances of one part each
     assert all(o is s for o, s in zip(out, split))
     unknown = _part_poses(lnd, bad, instrument="my_custom_tool")
-    with pytest.warns(UserWarning, match="no built-in description"):
+    with pytest.warns(UserWarning, match="has no description"):
         out = apply_kinematics(unknown, [0] * 4, _infos(lnd))
     assert all(o is s for o, s in zip(out, unknown))
     foreign = _infos(lnd)

@@ -311,6 +311,21 @@ def test_kinematic_settings_are_checked():
             TrackConfig(kinematic_anchor_weight=bad)
 
 
+def test_tracking_settings_are_checked_with_the_file_named(tmp_path):
+    from surftrack.track import TrackConfigError, load_track_config
+
+    for text, msg in (("est_pos_std_mm: 0", "est_pos_std_mm must be > 0"),
+                      ("flow_floor_deg: -1", "flow_floor_deg must be a finite number >= 0"),
+                      ("inlier_px: .nan", "inlier_px must be > 0"),
+                      ("kalman: {max_rejections: 0}", "kalman: max_rejections must be >= 1"),
+                      ("kalman: {meas_rot_std_deg: '3'}", "meas_rot_std_deg must be a finite number")):
+        f = tmp_path / "t.yaml"
+        f.write_text(text + "\n")
+        with pytest.raises(TrackConfigError, match=msg) as e:
+            load_track_config(f)
+        assert str(f) in str(e.value)
+
+
 def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(clip, lnd_parts, tiny_ckpt):
     """Flow points are lifted to 3D from the tracked pose, so a flow measurement repeats that pose's error:
     its covariance includes the pose's uncertainty at lifting time. Seeded 4 mm off, the wrist track is
@@ -339,3 +354,45 @@ def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(cl
     assert state.info["d2"] <= TrackConfig().kalman.gate_chi2, "... and passed the gate"
     te = pose_distance(state.R, state.t, *gt.pose(i, tid)[:2])[1]
     assert 1.5 < te < 3.2, te
+
+
+def test_a_users_instrument_is_tracked_with_joints_when_its_description_is_given(clip, tmp_path, capsys):
+    """A model of an instrument that is not built in tracks without its description (a note says there
+    are no joint angles); with ``--instrument its.yaml`` the joint angles are fitted too."""
+    import torch
+
+    from surftrack.instruments import load_instrument, load_instrument_file
+    from surftrack.model import save_checkpoint
+    from surftrack.model.config import ModelCfg, TrainConfig
+    from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
+
+    desc = tmp_path / "my_tool.yaml"
+    desc.write_text(load_instrument("lnd").source.read_text()
+                    .replace("name: large_needle_driver", "name: my_tool").replace("aliases: [lnd]", "aliases: []"))
+    tool = load_instrument_file(desc)
+    torch.manual_seed(0)
+    model = SurfSurg6D([PartInfo.from_part(i + 1, tool.name, tool.parts[n]) for i, n in enumerate(tool.part_names)],
+                       ModelCfg(decoder_widths=(16, 16, 16, 16, 16), siren_hidden=32))
+    cfg = TrainConfig.from_dict({"model": {"decoder_widths": [16, 16, 16, 16, 16], "siren_hidden": 32},
+                                 "data": {"crop": 64}})
+    ckpt = save_checkpoint(tmp_path / "my_tool.pt", model, cfg, step=0)
+    det = json.loads((clip / "det.json").read_text())
+    for d in det["parts"].values():
+        d["instrument"] = d["instrument"].replace("large_needle_driver", "my_tool")
+    (tmp_path / "det.json").write_text(json.dumps(det))
+    (tmp_path / "accept_all.yaml").write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\n")
+    args = [str(clip / "video.mp4"), "--boxes", str(tmp_path / "det.json"), "--camera", str(clip / "camera.json"),
+            "--model", str(ckpt), "--quiet", "--end", "0.5", "--config", str(tmp_path / "accept_all.yaml")]
+
+    def joint_topics(out):
+        with open(out, "rb") as f:
+            return {c.topic for c in make_reader(f).get_summary().channels.values() if c.topic.endswith("/joints")}
+
+    assert main([*args, "-o", str(tmp_path / "a.mcap")]) == 0
+    assert "my_tool: no description of it has the model's meshes" in capsys.readouterr().out
+    assert joint_topics(tmp_path / "a.mcap") == set()
+    assert main([*args, "-o", str(tmp_path / "b.mcap"), "--instrument", str(desc)]) == 0
+    assert "no description" not in capsys.readouterr().out
+    assert joint_topics(tmp_path / "b.mcap") == {"/instruments/my_tool.0/joints"}
+    assert main([*args, "-o", str(tmp_path / "c.mcap"), "--instrument", str(tmp_path / "nope.yaml")]) == 2
+    assert "nope.yaml: --instrument: no such instrument description" in capsys.readouterr().err

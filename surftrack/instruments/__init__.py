@@ -12,6 +12,7 @@ from surftrack.instruments.kinematics import (
     rcm_base_pose,
 )
 from surftrack.instruments.library import (
+    INSTRUMENTS_ENV,
     Attachment,
     Instrument,
     InstrumentError,
@@ -19,12 +20,14 @@ from surftrack.instruments.library import (
     list_instruments,
     load_instrument,
     load_instrument_file,
+    user_instrument_files,
 )
 from surftrack.instruments.part import Material, Part
 
 __all__ = [
-    "Attachment", "FitConfig", "Instrument", "InstrumentError", "JOINT_NAMES", "JointFit", "JointLimits",
-    "JointState", "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "estimate_trocar",
+    "INSTRUMENTS_ENV", "Attachment", "FitConfig", "Instrument", "InstrumentError", "JOINT_NAMES", "JointFit",
+    "JointLimits", "JointState", "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "estimate_trocar",
     "export_bop_models", "fit_configuration", "instrument_files", "list_instruments", "load_bop_models",
     "load_instrument", "load_instrument_file", "model_info", "rcm_base_pose",
+    "user_instrument_files",
 ]

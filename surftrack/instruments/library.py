@@ -8,6 +8,7 @@ given in degrees. See ``configs/instruments/large_needle_driver.yaml`` for a com
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -23,6 +24,7 @@ from surftrack.instruments.part import Material, Part
 from surftrack.instruments.procedural import build, finish
 from surftrack.paths import configs_dir
 
+INSTRUMENTS_ENV = "SURFTRACK_INSTRUMENTS"
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "inch": 25.4}
 
 
@@ -146,19 +148,42 @@ def load_instrument_file(path: str | Path) -> Instrument:
     )
 
 
+def user_instrument_files() -> list[Path]:
+    """The instrument YAML files named by ``$SURFTRACK_INSTRUMENTS``: files or folders of ``*.yaml``,
+    separated by ``os.pathsep`` (the CLI's ``--instrument`` sets it). Raises :class:`InstrumentError`
+    for an entry that does not exist."""
+    files: list[Path] = []
+    for entry in filter(None, os.environ.get(INSTRUMENTS_ENV, "").split(os.pathsep)):
+        p = Path(entry)
+        if p.is_dir():
+            files += sorted(p.glob("*.yaml")) + sorted(p.glob("*.yml"))
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InstrumentError(f"{p}: instrument description not found (from ${INSTRUMENTS_ENV})")
+    return files
+
+
 def instrument_files() -> dict[str, Path]:
-    """Built-in instrument descriptions, keyed by name and by alias."""
+    """Known instrument descriptions, keyed by name and by alias: the built-in ones
+    (``configs/instruments``), then the user's (:func:`user_instrument_files`), which take precedence."""
     out: dict[str, Path] = {}
-    for f in sorted((configs_dir() / "instruments").glob("*.yaml")):
-        doc = yaml.safe_load(f.read_text()) or {}
+    for f in sorted((configs_dir() / "instruments").glob("*.yaml")) + user_instrument_files():
+        try:
+            doc = yaml.safe_load(f.read_text()) or {}
+        except (OSError, yaml.YAMLError) as e:
+            raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
+        if not isinstance(doc, dict):
+            raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
         for key in [doc.get("name", f.stem), *doc.get("aliases", [])]:
             out[str(key)] = f
     return out
 
 
 def list_instruments() -> list[str]:
-    """Names (not aliases) of the built-in instruments."""
-    return sorted({yaml.safe_load(f.read_text())["name"] for f in set(instrument_files().values())})
+    """Names (not aliases) of the known instruments (built-in and ``$SURFTRACK_INSTRUMENTS``)."""
+    return sorted({str((yaml.safe_load(f.read_text()) or {}).get("name", f.stem))
+                   for f in set(instrument_files().values())})
 
 
 @lru_cache(maxsize=32)
@@ -167,7 +192,8 @@ def _load_cached(path: str, mtime: float) -> Instrument:
 
 
 def load_instrument(name_or_path: str | Path) -> Instrument:
-    """A built-in instrument by name or alias (``lnd``), or one described by a YAML file path.
+    """A known instrument by name or alias (``lnd``; built-in or from ``$SURFTRACK_INSTRUMENTS``), or one
+    described by a YAML file path.
 
     Instruments are cached per file and modification time; treat the result as read-only.
     """
@@ -178,11 +204,13 @@ def load_instrument(name_or_path: str | Path) -> Instrument:
     else:
         files = instrument_files()
         if str(name_or_path) not in files:
-            raise InstrumentError(f"unknown instrument {str(name_or_path)!r}; built-in: {', '.join(sorted(files))}")
+            raise InstrumentError(f"unknown instrument {str(name_or_path)!r}; known: {', '.join(sorted(files))} "
+                                  f"(give its YAML file, or list it in ${INSTRUMENTS_ENV})")
         p = files[str(name_or_path)]
     p = p.resolve()
     return _load_cached(str(p), p.stat().st_mtime)
 
 
 __all__ = ["Attachment", "Instrument", "InstrumentError", "JOINT_NAMES", "load_instrument",
-           "load_instrument_file", "list_instruments", "instrument_files"]
+           "load_instrument_file", "list_instruments", "instrument_files", "user_instrument_files",
+           "INSTRUMENTS_ENV"]

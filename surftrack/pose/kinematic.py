@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import warnings
 from collections import defaultdict
 from collections.abc import Hashable, Mapping, Sequence
@@ -29,7 +30,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surftrack.instruments import FitConfig, Instrument, InstrumentError, JointFit, fit_configuration, load_instrument
+from surftrack.instruments import (
+    INSTRUMENTS_ENV,
+    FitConfig,
+    Instrument,
+    InstrumentError,
+    JointFit,
+    fit_configuration,
+    load_instrument,
+)
 
 
 @dataclass(frozen=True)
@@ -70,18 +79,20 @@ _instruments: dict[str, Instrument | None] = {}
 
 
 def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None) -> Instrument | None:
-    """The built-in instrument ``name`` when its parts' meshes are those the model was trained on
-    (``part_hashes``: part name -> mesh SHA-256, from the checkpoint); None (with one warning) when the
-    instrument is unknown or its meshes differ, so no kinematic model applies. Cached per process."""
-    key = name + "|" + ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))
+    """The known instrument ``name`` (built-in, or described in ``$SURFTRACK_INSTRUMENTS``) when its parts'
+    meshes are those the model was trained on (``part_hashes``: part name -> mesh SHA-256, from the
+    checkpoint); None (with one warning) when the instrument is unknown or its meshes differ, so no
+    kinematic model applies. Cached per process and instrument search path."""
+    key = "|".join([name, os.environ.get(INSTRUMENTS_ENV, ""),
+                    ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))])
     if key in _instruments:
         return _instruments[key]
     inst: Instrument | None
     try:
         inst = load_instrument(name)
     except InstrumentError:
-        warnings.warn(f"instrument {name!r} has no built-in description (configs/instruments): its parts keep "
-                      "their per-part poses", stacklevel=2)
+        warnings.warn(f"instrument {name!r} has no description (built-in, or its YAML passed with --instrument "
+                      f"or listed in ${INSTRUMENTS_ENV}): its parts keep their per-part poses", stacklevel=2)
         inst = None
     if inst is not None:
         bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]

@@ -15,7 +15,7 @@ from collections import deque
 
 import numpy as np
 
-from surftrack.instruments import JointFit, estimate_trocar, fit_configuration, load_instrument
+from surftrack.instruments import Instrument, JointFit, estimate_trocar, fit_configuration, load_instrument
 from surftrack.track.tracker import PartState
 
 POSED = ("keyframe", "tracking", "predicted")
@@ -25,9 +25,9 @@ class ArticulationTracker:
     """Per (instrument, instance): ``update(states)`` -> the frame's :class:`JointFit` or None (no
     posed part)."""
 
-    def __init__(self, instrument_name: str, trocar_after: int = 30, trocar_every: int = 30,
+    def __init__(self, instrument: Instrument | str, trocar_after: int = 30, trocar_every: int = 30,
                  history: int = 300):
-        self.instrument = load_instrument(instrument_name)
+        self.instrument = load_instrument(instrument) if isinstance(instrument, str) else instrument
         self.prev: JointFit | None = None
         self.trocar: np.ndarray | None = None
         self.axes: deque = deque(maxlen=history)
