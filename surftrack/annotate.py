@@ -15,24 +15,19 @@ from __future__ import annotations
 
 import contextlib
 import time
-import warnings
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from surftrack import __version__
-from surftrack.instruments import JOINT_NAMES, Instrument
+from surftrack.instruments import JOINT_NAMES
 from surftrack.synth.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
-
-if TYPE_CHECKING:
-    from surftrack.model import SurfSurg6D
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 STATUS_COLOURS = {"keyframe": (0.0, 0.9, 1.0, 1.0), "tracking": (0.1, 1.0, 0.2, 1.0),
@@ -198,17 +193,6 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
             files[f] = s.name
 
 
-def _described_instrument(name: str, model: SurfSurg6D) -> Instrument | None:
-    """The description of instrument ``name`` (built-in or ``$SURFTRACK_INSTRUMENTS``) whose part meshes
-    are the model's, or None: joint angles fitted with other meshes or kinematics would be wrong."""
-    from surftrack.pose.kinematic import kinematic_instrument
-
-    hashes = {p.name: p.mesh_sha256 for p in model.parts if p.instrument == name}
-    with warnings.catch_warnings():  # the caller notes it once per run
-        warnings.simplefilter("ignore")
-        return kinematic_instrument(name, hashes)
-
-
 def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
                    on_frame: Callable[[int, float, list[PartState]], None] | None = None) -> dict:
     """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
@@ -258,17 +242,21 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     n_done, t_first, last_t = 0, None, None
     overlay = tum = joints_csv = None
     fitters = {}
-    if opts.joints or opts.joints_csv is not None:
+    joints = opts.joints or opts.joints_csv is not None
+    if joints or opts.config.kinematic:
+        from surftrack.pose.kinematic import described_instrument
         from surftrack.track.articulation import ArticulationTracker
 
         for inst in sorted({s.instrument for s in specs}):
-            described = _described_instrument(inst, model)
+            described, why = described_instrument(inst, {p.name: p.mesh_sha256 for p in model.parts
+                                                         if p.instrument == inst}, caller_reports=True)
             if described is None:
-                notes.append(f"{inst}: no description of it has the model's meshes, so no joint angles and no "
-                             f"instrument-consistent fit (pass its YAML with --instrument)")
-                continue
-            fitters.update({(s.instrument, s.instance): ArticulationTracker(described)
-                            for s in specs if s.instrument == inst})
+                lost = " and ".join(w for w, on in (("joint angles", joints),
+                                                    ("instrument-consistent fit", opts.config.kinematic)) if on)
+                notes.append(f"{why}: no {lost} for it")
+            elif joints:
+                fitters.update({(s.instrument, s.instance): ArticulationTracker(described)
+                                for s in specs if s.instrument == inst})
     from tqdm import tqdm
 
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run

@@ -31,8 +31,9 @@ def _seed(text: str) -> int:
 @contextlib.contextmanager
 def _use_instruments(files: list[str] | None) -> Iterator[None]:
     """``--instrument YAML`` (repeatable): check each description and make it known to the command (and
-    to its worker processes) through ``$SURFTRACK_INSTRUMENTS``, restored afterwards."""
-    from surftrack.instruments import INSTRUMENTS_ENV, load_instrument_file
+    to its worker processes) through ``$SURFTRACK_INSTRUMENTS``, ahead of what it held (restored
+    afterwards). The whole search path is checked here, so a bad entry fails the command in one line."""
+    from surftrack.instruments import INSTRUMENTS_ENV, instrument_files, load_instrument_file
 
     before = os.environ.get(INSTRUMENTS_ENV)
     for f in files or []:
@@ -42,6 +43,7 @@ def _use_instruments(files: list[str] | None) -> Iterator[None]:
     if files:
         os.environ[INSTRUMENTS_ENV] = os.pathsep.join([*(str(Path(f).resolve()) for f in files), *filter(None, [before])])
     try:
+        instrument_files()
         yield
     finally:
         if before is None:
@@ -160,7 +162,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                      kinematic=args.kinematic)
     paths = write_eval_outputs(r, args.out)
     print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
-          f"preset {r['preset']}{', instrument-consistent poses' if args.kinematic else ''}, "
+          f"preset {r['preset']}{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
           f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
     print(markdown_table(r), end="")
     for w in r["warnings"]:

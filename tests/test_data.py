@@ -2,6 +2,7 @@
 augmentation, the crop dataset and syn:real mixing."""
 
 import json
+import os
 import pickle
 import shutil
 
@@ -472,6 +473,8 @@ def test_join_links_the_scenes_of_several_datasets(root, tmp_path):
     assert main(["join", "--out", str(tmp_path / "both"), str(root), str(other)]) == 0
     joined = BopDataset(tmp_path / "both", "train", min_visib_fract=0.1)
     assert len(joined.instances) == 2 * n_one
+    links = [tmp_path / "both" / "models", *(tmp_path / "both" / "train").iterdir()]
+    assert links and all(p.is_symlink() and not os.path.isabs(os.readlink(p)) for p in links)  # the tree can move
     card = json.loads((tmp_path / "both" / "dataset_card.json").read_text())
     assert card["objects"] == json.loads((root / "dataset_card.json").read_text())["objects"]
     assert main(["join", "--out", str(tmp_path / "both"), str(root), str(other)]) == 0  # the same join again

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -493,3 +494,15 @@ def test_user_instruments_from_the_search_path(tmp_path, monkeypatch):
     monkeypatch.setenv(INSTRUMENTS_ENV, str(tmp_path / "missing.yaml"))
     with pytest.raises(InstrumentError, match="missing.yaml: instrument description not found"):
         load_instrument("my_tool")
+    # among the user's descriptions the first listed wins; none may claim a built-in name or alias
+    v2 = tmp_path / "v2.yaml"
+    v2.write_text((folder / "my_tool.yaml").read_text().replace("aliases: [mt]", "aliases: [mt2]"))
+    monkeypatch.setenv(INSTRUMENTS_ENV, os.pathsep.join([str(v2), str(folder)]))
+    assert load_instrument("my_tool").source.resolve() == v2.resolve()
+    assert load_instrument("mt").source.resolve() == (folder / "my_tool.yaml").resolve()
+    for bad, msg in (("aliases: [mt]", "'lnd' is the built-in instrument"), ("aliases:\n  - ''", "'aliases' must be"),
+                     ("aliases: mt", "'aliases' must be a list of names")):
+        v2.write_text((folder / "my_tool.yaml").read_text().replace("aliases: [mt]", bad.replace("[mt]", "[lnd]")
+                                                                    if "built-in" in msg else bad))
+        with pytest.raises(InstrumentError, match=msg):
+            load_instrument("lnd")

@@ -153,7 +153,10 @@ def test_outlier_is_gated_and_normal_measurements_pass():
     x = kf.x
     for forced in (True, False):
         assert kf.update(Rm[45], tm[45] * np.nan, gate=forced) is False
+        assert kf.update(Rm[45] * np.nan, tm[45], gate=forced) is False
     assert np.array_equal(kf.x, x) and np.isfinite(kf.covariance).all()
+    with pytest.raises(ValueError, match="non-finite"):
+        kf.init(Rm[45] * np.nan, tm[45], times[45])
 
 
 def test_noise_settings_are_checked():

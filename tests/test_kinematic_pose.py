@@ -99,6 +99,7 @@ def test_apply_kinematics_per_instance(lnd):
 
 def test_apply_kinematics_leaves_what_it_cannot_fit(lnd, monkeypatch):
     monkeypatch.setattr(kinematic, "_instruments", {})  # warnings are given once per process
+    monkeypatch.setattr(kinematic, "_warned", set())
     bad = _corrupt(_truth(lnd))
     one = _part_poses(lnd, {"shaft": bad["shaft"]})
     assert apply_kinematics(one, [0], _infos(lnd))[0] is one[0]  # a lone part: nothing to be consistent with

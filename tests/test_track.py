@@ -2,6 +2,7 @@
 command end to end (video through PyAV, MCAP read back with the mcap reader)."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -389,10 +390,53 @@ def test_a_users_instrument_is_tracked_with_joints_when_its_description_is_given
             return {c.topic for c in make_reader(f).get_summary().channels.values() if c.topic.endswith("/joints")}
 
     assert main([*args, "-o", str(tmp_path / "a.mcap")]) == 0
-    assert "my_tool: no description of it has the model's meshes" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "note: instrument 'my_tool' has no description" in out.out
+    assert "no joint angles and instrument-consistent fit for it" in out.out and "Warning" not in out.err
     assert joint_topics(tmp_path / "a.mcap") == set()
     assert main([*args, "-o", str(tmp_path / "b.mcap"), "--instrument", str(desc)]) == 0
     assert "no description" not in capsys.readouterr().out
     assert joint_topics(tmp_path / "b.mcap") == {"/instruments/my_tool.0/joints"}
-    assert main([*args, "-o", str(tmp_path / "c.mcap"), "--instrument", str(tmp_path / "nope.yaml")]) == 2
+    assert "SURFTRACK_INSTRUMENTS" not in os.environ  # the option holds for its command only
+    # a description with other meshes is named as such
+    other = tmp_path / "other.yaml"
+    other.write_text(desc.read_text().replace("length: 40.0", "length: 42.0"))
+    assert main([*args, "-o", str(tmp_path / "c.mcap"), "--instrument", str(other)]) == 0
+    assert "the model's meshes of ['shaft'] differ from those of" in capsys.readouterr().out
+    assert main([*args, "-o", str(tmp_path / "d.mcap"), "--instrument", str(tmp_path / "nope.yaml")]) == 2
     assert "nope.yaml: --instrument: no such instrument description" in capsys.readouterr().err
+
+
+def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, lnd_parts, tiny_ckpt):
+    """'Sees nothing' (score <= 0) drops a tracked part only when the retry on the next frame sees nothing
+    too; an inconclusive result in between (score > 0, too few inliers) re-arms that retry."""
+    from surftrack.model import load_checkpoint
+    from surftrack.pose.estimator import PartPose
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    info = next(p for p in model.parts if p.name == "wrist")
+    tid = lnd_parts["wrist"]
+    gt, frames = ClipGroundTruth(clip / "gt.json"), _frames(clip)
+    script = iter([(-1.0, 0), (0.5, 2), (-1.0, 0), (-1.0, 0)])  # nothing, inconclusive, nothing, nothing
+
+    class Scripted:
+        def __init__(self):
+            self.model, self.frame = model, 0
+
+        def estimate(self, image, boxes, K, priors=None):
+            score, inliers = next(script)
+            R, t, _ = gt.pose(self.frame, tid)
+            return [PartPose(o, info.name, info.instrument, R, t, score, inliers, True, {}, (0, 0, 1, 1), np.eye(3))
+                    for o, _ in boxes]
+
+    est = Scripted()
+    spec = PartSpec(tid, info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
+    tracker = Tracker(est, _K(clip), (320, 256), [spec], TrackConfig(kinematic=False, max_predicted=1000))
+    start = next(i for i in range(len(frames)) if gt.pose(i, tid)[2] > 0.5)
+    tracker.set_pose(tid, *gt.pose(start, tid)[:2], start / 10.0)
+    statuses = []
+    for k in range(5):  # the seeded frame needs no estimate; the script is played on the next four
+        est.frame = start + k
+        statuses.append(tracker.step(frames[start + k], (start + k) / 10.0, None)[0].status)
+    assert "lost" not in statuses[:4] and statuses[4] == "lost", statuses
+    assert next(script, None) is None

@@ -105,8 +105,9 @@ def load_instrument_file(path: str | Path) -> Instrument:
         raise InstrumentError(f"{path}: cannot read instrument description: {yaml_problem(e)}") from None
     if not isinstance(doc, dict) or "name" not in doc or not doc.get("parts"):
         raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
-    if not isinstance(doc.get("aliases", []), list):
-        raise InstrumentError(f"{path}: 'aliases' must be a list, e.g. [lnd]")
+    aliases = doc.get("aliases") or []
+    if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
+        raise InstrumentError(f"{path}: 'aliases' must be a list of names, e.g. [lnd]")
     limits_deg = doc.get("joint_limits_deg", {})
     try:
         limits = JointLimits({k: (float(np.radians(lo)), float(np.radians(hi))) for k, (lo, hi) in limits_deg.items()})
@@ -143,15 +144,15 @@ def load_instrument_file(path: str | Path) -> Instrument:
         raise InstrumentError(f"{path}: {e}") from None
     return Instrument(
         name=str(doc["name"]), parts={n: parts[n] for n in chain.order}, chain=chain, limits=limits,
-        description=str(doc.get("description", "")), aliases=tuple(doc.get("aliases", ())),
+        description=str(doc.get("description", "")), aliases=tuple(aliases),
         attachments=attachments, source=path,
     )
 
 
 def user_instrument_files() -> list[Path]:
-    """The instrument YAML files named by ``$SURFTRACK_INSTRUMENTS``: files or folders of ``*.yaml``,
-    separated by ``os.pathsep`` (the CLI's ``--instrument`` sets it). Raises :class:`InstrumentError`
-    for an entry that does not exist."""
+    """The instrument YAML files named by ``$SURFTRACK_INSTRUMENTS``, in order: files or folders of
+    ``*.yaml``, separated by ``os.pathsep`` (the CLI's ``--instrument`` puts its files first). Raises
+    :class:`InstrumentError` for an entry that does not exist."""
     files: list[Path] = []
     for entry in filter(None, os.environ.get(INSTRUMENTS_ENV, "").split(os.pathsep)):
         p = Path(entry)
@@ -164,26 +165,43 @@ def user_instrument_files() -> list[Path]:
     return files
 
 
+def _names(f: Path) -> tuple[str, list[str]]:
+    """(name, aliases) of the description ``f``, checked as :func:`load_instrument_file` checks them."""
+    try:
+        doc = yaml.safe_load(f.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("name"), str) or not doc["name"]:
+        raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
+    aliases = doc.get("aliases") or []
+    if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
+        raise InstrumentError(f"{f}: 'aliases' must be a list of names, e.g. [lnd]")
+    return doc["name"], aliases
+
+
 def instrument_files() -> dict[str, Path]:
     """Known instrument descriptions, keyed by name and by alias: the built-in ones
-    (``configs/instruments``), then the user's (:func:`user_instrument_files`), which take precedence."""
+    (``configs/instruments``) and the user's (:func:`user_instrument_files`; where two of those claim a
+    name, the first listed wins). A user's description may not claim a built-in name or alias: that
+    raises :class:`InstrumentError` naming both files."""
     out: dict[str, Path] = {}
-    for f in sorted((configs_dir() / "instruments").glob("*.yaml")) + user_instrument_files():
-        try:
-            doc = yaml.safe_load(f.read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
-        if not isinstance(doc, dict):
-            raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
-        for key in [doc.get("name", f.stem), *doc.get("aliases", [])]:
-            out[str(key)] = f
+    for f in sorted((configs_dir() / "instruments").glob("*.yaml")):
+        name, aliases = _names(f)
+        out.update({key: f for key in [name, *aliases]})
+    builtin = dict(out)
+    for f in user_instrument_files():
+        name, aliases = _names(f)
+        for key in [name, *aliases]:
+            if key in builtin and builtin[key].resolve() != f.resolve():
+                raise InstrumentError(f"{f}: {key!r} is the built-in instrument described in {builtin[key]}; "
+                                      "give your instrument another name and aliases")
+            out.setdefault(key, f)
     return out
 
 
 def list_instruments() -> list[str]:
     """Names (not aliases) of the known instruments (built-in and ``$SURFTRACK_INSTRUMENTS``)."""
-    return sorted({str((yaml.safe_load(f.read_text()) or {}).get("name", f.stem))
-                   for f in set(instrument_files().values())})
+    return sorted({_names(f)[0] for f in set(instrument_files().values())})
 
 
 @lru_cache(maxsize=32)

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
-from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, check_anchor
+from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, check_anchor, described_instrument
 
 __all__ = ["GROUPS", "evaluate", "group_stats", "markdown_table", "pose_errors", "summarize", "write_eval_outputs"]
 
@@ -188,10 +188,18 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(checkpoint, preset, device=device)
     if kinematic is True:
         kinematic = KinematicConfig()
+    fitted: list[str] = []
     if kinematic:
         check_anchor(kinematic, est.model.parts)
     bop = BopDataset(data_dir, split, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib)
     warn: list[str] = []
+    for name in sorted({p.instrument for p in est.model.parts}) if kinematic else []:
+        inst, why = described_instrument(name, {p.name: p.mesh_sha256 for p in est.model.parts if p.instrument == name},
+                                         caller_reports=True)
+        if inst is None:
+            warn.append(f"{why}: its parts are evaluated on their per-part poses")
+        else:
+            fitted.append(name)
 
     known = {p.obj_id: p for p in est.model.parts}
     for o, info in known.items():
@@ -289,7 +297,7 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
     return {
         "checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
-        "kinematic": dataclasses.asdict(kinematic) if kinematic else None,
+        "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": fitted,
         "device": str(est.device), "n_images": len(keys), "n_instances": len(records),
         "skipped_unknown_obj": skipped,
         "occlusion": {"threshold": float(occlusion_threshold),
@@ -336,7 +344,8 @@ def markdown_table(result: Mapping, diameter: str = "surgripe", stat: str = "mea
                   f"Avg ACC 0-5 mm: area under the ADD accuracy-threshold curve on [0, 5] mm. "
                   f"{occ['definition']}. Avg columns / row pool all instances. Ground-truth boxes; preset "
                   f"{result.get('preset')}, split {result.get('split')}, {result.get('n_images')} images"
-                  + ("; instrument-consistent poses (kinematic fit)" if result.get("kinematic") else "") + ".", ""]
+                  + (f"; instrument-consistent poses (kinematic fit) of {', '.join(result['kinematic_instruments'])}"
+                     if result.get("kinematic") and result.get("kinematic_instruments") else "") + ".", ""]
     head2 = ["Part", "n non-occ", "n occ", "failures", f"RE {other_s} (°)", f"TE {other_s} (mm)",
              f"ADD {stat} (mm)", f"ADD-10 {_DNAME[other_d]} diam. (%)",
              "ADD-S AUC 0-5 mm (%)"]

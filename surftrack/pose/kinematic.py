@@ -75,32 +75,45 @@ def check_anchor(config: KinematicConfig, model_parts: Sequence) -> None:
                          f"{', '.join(names)}); name one of them, or turn the kinematic fit off")
 
 
-_instruments: dict[str, Instrument | None] = {}
+_instruments: dict[str, tuple[Instrument | None, str]] = {}
+_warned: set[str] = set()
+
+
+def described_instrument(name: str, part_hashes: Mapping[str, str] | None = None,
+                         caller_reports: bool = False) -> tuple[Instrument | None, str]:
+    """(instrument, "") for the known instrument ``name`` (built-in, or described in
+    ``$SURFTRACK_INSTRUMENTS``) when its parts' meshes are those the model was trained on (``part_hashes``:
+    part name -> mesh SHA-256, from the checkpoint); else (None, why not): unknown, or other meshes, so no
+    kinematic model applies. ``caller_reports``: the caller tells the user why, so
+    :func:`kinematic_instrument` does not warn about it. Cached per process, search path and hashes (edit
+    a description, restart)."""
+    key = "|".join([name, os.environ.get(INSTRUMENTS_ENV, ""),
+                    ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))])
+    if key not in _instruments:
+        try:
+            inst: Instrument | None = load_instrument(name)
+            why = ""
+        except InstrumentError:
+            inst, why = None, (f"instrument {name!r} has no description (built-in, or its YAML passed with "
+                               f"--instrument or listed in ${INSTRUMENTS_ENV})")
+        if inst is not None:
+            bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]
+            if bad:
+                where = inst.source or "its description"
+                inst, why = None, f"instrument {name!r}: the model's meshes of {bad} differ from those of {where}"
+        _instruments[key] = (inst, why)
+    if caller_reports and _instruments[key][1]:
+        _warned.add(_instruments[key][1])
+    return _instruments[key]
 
 
 def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None) -> Instrument | None:
-    """The known instrument ``name`` (built-in, or described in ``$SURFTRACK_INSTRUMENTS``) when its parts'
-    meshes are those the model was trained on (``part_hashes``: part name -> mesh SHA-256, from the
-    checkpoint); None (with one warning) when the instrument is unknown or its meshes differ, so no
-    kinematic model applies. Cached per process and instrument search path."""
-    key = "|".join([name, os.environ.get(INSTRUMENTS_ENV, ""),
-                    ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))])
-    if key in _instruments:
-        return _instruments[key]
-    inst: Instrument | None
-    try:
-        inst = load_instrument(name)
-    except InstrumentError:
-        warnings.warn(f"instrument {name!r} has no description (built-in, or its YAML passed with --instrument "
-                      f"or listed in ${INSTRUMENTS_ENV}): its parts keep their per-part poses", stacklevel=2)
-        inst = None
-    if inst is not None:
-        bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]
-        if bad:
-            warnings.warn(f"instrument {name!r}: the model's meshes of {bad} differ from the instrument "
-                          "description's; per-part poses are left as estimated", stacklevel=2)
-            inst = None
-    _instruments[key] = inst
+    """:func:`described_instrument`'s instrument; None with one warning (per process and cause) when
+    there is none, so its parts keep their per-part poses."""
+    inst, why = described_instrument(name, part_hashes)
+    if inst is None and why not in _warned:
+        _warned.add(why)
+        warnings.warn(f"{why}: its parts keep their per-part poses", stacklevel=2)
     return inst
 
 

@@ -170,9 +170,12 @@ class PoseKalman:
 
     # ------------------------------------------------------------------ init / predict
     def init(self, R: np.ndarray, t: np.ndarray, time: float, meas_cov: np.ndarray | None = None) -> None:
-        """(Re-)initialise from a pose measurement; never gated. Velocities start at 0."""
+        """(Re-)initialise from a pose measurement; never gated. Velocities start at 0. Raises
+        ``ValueError`` for a non-finite pose or covariance."""
         c = self.config
         meas_cov = c.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
+        if not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(meas_cov).all()):
+            raise ValueError("cannot initialise a pose filter from a non-finite pose or covariance")
         self.R_ref = np.asarray(R, np.float64).copy()
         x = np.zeros(12)
         x[0:3] = np.asarray(t, np.float64).reshape(3)
@@ -248,10 +251,14 @@ class PoseKalman:
                gate: bool = True) -> bool:
         """Fuse a pose measurement at the current filter time. Returns False (state untouched) when gated."""
         meas_cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
+        if not (np.isfinite(R_meas).all() and np.isfinite(t_meas).all() and np.isfinite(meas_cov).all()):
+            self.rejections_in_a_row += 1  # a non-finite measurement is never fused, gated or not
+            self.last_d2 = math.inf
+            return False
         z, y, S = self._innovation(R_meas, t_meas, meas_cov)
         d2 = float(y @ np.linalg.solve(S, y))
         self.last_d2 = d2
-        if not math.isfinite(d2) or (gate and d2 > self.config.gate_chi2):  # a NaN pose is never fused
+        if not math.isfinite(d2) or (gate and d2 > self.config.gate_chi2):
             self.rejections_in_a_row += 1
             return False
         self.kf.update(z.reshape(6, 1), R=meas_cov)
