@@ -95,6 +95,10 @@ def test_apply_kinematics_per_instance(lnd):
     # Without the anchor (the wrist) nothing is fitted: the others would only follow each other.
     no_wrist = [r for r in _part_poses(lnd, _corrupt(a)) if r.part != "wrist"]
     assert all(o is r for o, r in zip(apply_kinematics(no_wrist, [0] * 3, _infos(lnd)), no_wrist))
+    # Nor when the network sees nothing of the anchor (score <= 0), even if a pose was solved.
+    unseen = _part_poses(lnd, _corrupt(a))
+    next(r for r in unseen if r.part == "wrist").score = -0.2
+    assert all(o is r for o, r in zip(apply_kinematics(unseen, [0] * 4, _infos(lnd)), unseen))
 
 
 def test_apply_kinematics_leaves_what_it_cannot_fit(lnd, monkeypatch):

@@ -138,7 +138,9 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
     ``groups[i]``: the instrument instance ``results[i]`` belongs to (parts of one instrument with the same
     key are fitted together). ``model_parts``: the model's :class:`PartInfo` list (``model.parts``), whose
     mesh hashes must match the instrument description's.
-    A group is fitted only when its anchor part (``config.anchor``) was estimated; the anchor keeps its
+    A group is fitted only when its anchor part (``config.anchor``) was estimated and seen (score > 0:
+    some pixel supports its pose; a score <= 0 anchor is the network seeing nothing of it, and the tracker
+    drops such a part rather than trust it); the anchor keeps its
     own estimate (its fitted pose barely differs, and in a tracker a pulled anchor would feed the pull
     back as the next frame's prior). Failed estimates (``ok`` False), groups of one part, groups that
     repeat a part and instruments without a kinematic model are left as they are. Replaced results carry
@@ -161,7 +163,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
         if inst is None:
             continue
         obs = {results[i].part: (results[i].R, results[i].t, results[i].score) for i in idx if results[i].ok}
-        if len(obs) < 2 or (cfg.anchor in inst.parts and cfg.anchor not in obs):
+        if len(obs) < 2 or (cfg.anchor in inst.parts and (cfg.anchor not in obs or obs[cfg.anchor][2] <= 0.0)):
             continue  # without its anchor the fit would place the parts relative to less reliable ones
         try:
             fitted, _ = consistent_poses(inst, obs, cfg)
