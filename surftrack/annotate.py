@@ -251,9 +251,9 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             described, why = described_instrument(inst, {p.name: p.mesh_sha256 for p in model.parts
                                                          if p.instrument == inst}, caller_reports=True)
             if described is None:
-                lost = " and ".join(w for w, on in (("joint angles", joints),
-                                                    ("instrument-consistent fit", opts.config.kinematic)) if on)
-                notes.append(f"{why}: no {lost} for it")
+                lost = " and ".join(w for w, on in (("no joint angles", joints),
+                                                    ("no instrument-consistent fit", opts.config.kinematic)) if on)
+                notes.append(f"{why}: {lost} for it")
             elif joints:
                 fitters.update({(s.instrument, s.instance): ArticulationTracker(described)
                                 for s in specs if s.instrument == inst})

@@ -354,6 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
+    except BrokenPipeError:  # `surftrack ... | head`: the reader left; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except errors as e:
         lines = [line.strip() for line in str(e).splitlines() if line.strip()]
         print(f"surftrack: error: {'; '.join(lines)}", file=sys.stderr)  # one line, whatever raised it
