@@ -313,3 +313,34 @@ def test_clip_ground_truth(lnd, clip_gt):
     assert np.all(np.median(noisy_err, axis=0) < 3.0)
     assert np.max(no_shaft) < 1e-3
     assert np.linalg.norm(estimate_trocar(bases) - clip_gt[0][2]) < 1e-3
+
+
+def test_articulation_tracker_finds_the_trocar_again_after_the_camera_moves(lnd):
+    """The trocar is estimated from the shaft axes, constrains the fits, and is estimated afresh when the
+    endoscope moves (every axis then misses it)."""
+    from types import SimpleNamespace
+
+    from surftrack.track.articulation import ArticulationTracker
+
+    rng = np.random.default_rng(21)
+    tracker = ArticulationTracker(lnd)
+
+    def frames(trocar, n):
+        mean_dir = (np.array([0.0, 0.0, 90.0]) - trocar) / np.linalg.norm(np.array([0.0, 0.0, 90.0]) - trocar)
+        for _ in range(n):
+            d = so3_exp(rng.normal(0, np.radians(12) / np.sqrt(2), 3)) @ mean_dir
+            q = JointState.from_degrees(roll=rng.uniform(-60, 60), pitch=rng.uniform(-40, 40),
+                                        yaw=rng.uniform(-40, 40), opening=rng.uniform(0, 50))
+            poses = noisy(lnd.forward(rcm_base_pose(trocar, trocar + rng.uniform(90, 130) * d), q), rng, 0.5, 0.5)
+            states = [SimpleNamespace(spec=SimpleNamespace(part=p), status="tracking", R=R, t=t, confidence=1.0)
+                      for p, (R, t) in poses.items()]
+            yield tracker.update(states), q
+
+    a, b = np.array([-70.0, -50.0, 10.0]), np.array([-30.0, -50.0, 10.0])  # the camera moved 40 mm
+    fits = [f for f, _ in frames(a, 45)]
+    assert tracker.trocar is not None and np.linalg.norm(tracker.trocar - a) < 2.0
+    assert fits[-1].ok and fits[-1].trocar_distance_mm < 5.0
+    after = list(frames(b, 60))
+    assert np.linalg.norm(tracker.trocar - b) < 2.0, tracker.trocar
+    assert all(f.ok and f.trocar_distance_mm < 5.0 for f, _ in after[-10:])
+    assert np.median([joint_errors_deg(f, q).max() for f, q in after[-10:]]) < 3.0

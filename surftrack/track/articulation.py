@@ -6,7 +6,10 @@ the poses of its parts that have one this frame, weighted by their confidence an
 previous fit. The trocar (remote centre of motion) is estimated from the fitted shaft axes once enough
 of them (``trocar_after``) with a measured shaft have been seen, re-estimated every ``trocar_every``
 fits, and used as a constraint from then on; it stays unknown while the axes barely change direction
-(they then do not pin a point).
+(they then do not pin a point). The trocar is a point in camera coordinates, so it assumes the
+endoscope holds still: when ``trocar_patience`` fits in a row with a shaft are poor under it (residuals
+beyond the ``FitConfig`` thresholds: the camera moved, or the first estimate was wrong), it is forgotten
+with the axes seen so far and estimated again from the axes that follow.
 """
 
 from __future__ import annotations
@@ -15,7 +18,13 @@ from collections import deque
 
 import numpy as np
 
-from surftrack.instruments import Instrument, JointFit, estimate_trocar, fit_configuration, load_instrument
+from surftrack.instruments import (
+    Instrument,
+    JointFit,
+    estimate_trocar,
+    fit_configuration,
+    load_instrument,
+)
 from surftrack.track.tracker import PartState
 
 POSED = ("keyframe", "tracking", "predicted")
@@ -26,13 +35,14 @@ class ArticulationTracker:
     posed part)."""
 
     def __init__(self, instrument: Instrument | str, trocar_after: int = 30, trocar_every: int = 30,
-                 history: int = 300):
+                 history: int = 300, trocar_patience: int = 10):
         self.instrument = load_instrument(instrument) if isinstance(instrument, str) else instrument
         self.prev: JointFit | None = None
         self.trocar: np.ndarray | None = None
         self.axes: deque = deque(maxlen=history)
-        self.trocar_after, self.trocar_every = trocar_after, trocar_every
+        self.trocar_after, self.trocar_every, self.trocar_patience = trocar_after, trocar_every, trocar_patience
         self._since_trocar = 0
+        self._trocar_misses = 0  # fits in a row whose shaft axis missed the trocar
 
     def update(self, states: list[PartState]) -> JointFit | None:
         poses = {s.spec.part: (s.R, s.t) for s in states if s.status in POSED and s.R is not None}
@@ -41,6 +51,12 @@ class ArticulationTracker:
         weights = {s.spec.part: max(s.confidence, 0.05) for s in states if s.spec.part in poses}
         try:
             fit = fit_configuration(self.instrument, poses, weights=weights, trocar_mm=self.trocar, init=self.prev)
+            if self.trocar is not None and "shaft" in fit.parts_used:
+                self._trocar_misses = 0 if fit.ok else self._trocar_misses + 1
+                if self._trocar_misses >= self.trocar_patience:  # the camera moved: start the trocar afresh
+                    self.trocar, self._trocar_misses = None, 0
+                    self.axes.clear()
+                    fit = fit_configuration(self.instrument, poses, weights=weights, init=self.prev)
         except ValueError:
             return None
         self.prev = fit
