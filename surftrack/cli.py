@@ -137,8 +137,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise CLIError(f"--steps must be positive, got {args.steps}")
     if args.init and args.resume:
         raise CLIError("--init and --resume exclude each other: --resume continues --out, --init starts afresh")
+    if args.init and args.imagenet:
+        raise CLIError("--init and --imagenet exclude each other: both set the starting weights")
     s = train(cfg, args.data, args.out, steps=args.steps, resume=args.resume, device=args.device,
-              progress=not args.quiet, init=args.init)
+              progress=not args.quiet, init=args.init, imagenet=args.imagenet)
     if s["rank"] != 0:  # under torchrun, one summary
         return 0
     val = s["val"]
@@ -276,6 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=int, help="override the number of training steps")
     tr.add_argument("--resume", action="store_true", help="continue from --out if it exists")
     tr.add_argument("--init", metavar="CKPT", help="start from this checkpoint's weights (fresh optimiser, step 0)")
+    tr.add_argument("--imagenet", metavar="PTH", help="initialise the encoder of a new run from a torchvision "
+                                                      "resnet18 state-dict file (e.g. resnet18-f37072fd.pth)")
     tr.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)

@@ -167,6 +167,33 @@ def test_init_from_checkpoint(tiny_data, tmp_path):
     other = cfg.replace(model={"decoder_widths": [16, 16, 16, 16, 16]})
     with pytest.raises(CheckpointError, match="architecture"):
         train(other, tiny_data, tmp_path / "c.pt", progress=False, init=first)
+    with pytest.raises(CheckpointError, match="differs from the config's"):  # resuming it would write bad checkpoints
+        train(other.replace(optim={"steps": 4}), tiny_data, first, progress=False, resume=True)
+
+
+def test_imagenet_weights_initialise_the_encoder(tiny_data, tmp_path):
+    """``--imagenet FILE``: a torchvision resnet18 state dict (names kept, ``fc.*`` ignored) sets the
+    encoder of a new run; anything else is refused naming the file."""
+    from surftrack.cli import main
+    from surftrack.model import CheckpointError
+    from surftrack.model.config import TrainConfig
+    from surftrack.model.resnet_unet import ResNet18Encoder
+
+    torch.manual_seed(5)
+    enc = ResNet18Encoder()
+    state = {**enc.state_dict(), "fc.weight": torch.zeros(1000, 512), "fc.bias": torch.zeros(1000)}
+    torch.save(state, tmp_path / "resnet18.pth")
+    cfg = TrainConfig.from_dict(TINY).replace(optim={"steps": 1, "lr_net": 0.0, "lr_field": 0.0},
+                                              run={"val_every": 100, "ckpt_every": 100})
+    train(cfg, tiny_data, tmp_path / "m.pt", progress=False, imagenet=tmp_path / "resnet18.pth")
+    got = load_checkpoint(tmp_path / "m.pt")[0].net.encoder.state_dict()
+    assert all(torch.equal(got[k], v) for k, v in enc.state_dict().items() if not k.endswith(("running_mean",
+                                                                                               "running_var",
+                                                                                               "num_batches_tracked")))
+    torch.save({"conv1.weight": torch.zeros(3)}, tmp_path / "bad.pth")
+    with pytest.raises(CheckpointError, match="bad.pth"):
+        train(cfg, tiny_data, tmp_path / "n.pt", progress=False, imagenet=tmp_path / "bad.pth")
+    assert main(["train", "--data", str(tiny_data), "--init", "x.pt", "--imagenet", "y.pth"]) == 2
 
 
 def test_int8_export_is_small_and_close(tmp_path):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 import random
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ from surftrack.geometry import rotation_angle_deg
 from surftrack.model import losses
 from surftrack.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from surftrack.model.config import TrainConfig, TrainConfigError, lr_factor
+from surftrack.model.resnet_unet import load_imagenet_weights
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D, surface_bank
 
 BANK_SIZE = 20000
@@ -100,8 +102,8 @@ class Trainer:
         B = img.shape[0]
         # Queries: n_pos pixels per crop from the training mask (with replacement when it is small).
         w = valid.view(B, -1).float()
-        empty = w.sum(1) == 0
-        w[empty] = 1.0  # never happens after dataset filtering; keeps multinomial defined
+        empty = w.sum(1) == 0  # e.g. an occluder over all of a thin part's visible pixels (modal masks)
+        w[empty] = 1.0  # keeps multinomial defined; these crops' queries are left out of the NCE below
         idx = torch.multinomial(w, cfg.n_pos, replacement=True, generator=gen)        # (B, N)
         c_q = coord.view(B, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
         neg_idx = torch.randint(0, self.bank.shape[1], (B, cfg.n_neg), device=self.device, generator=gen)
@@ -111,6 +113,8 @@ class Trainer:
         mask_logit, query, keys = (module if module is not None else self.forward)(img, part, pts)
         q = query.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, query.shape[1]))
         k_pos, k_neg = keys[:, : cfg.n_pos], keys[:, cfg.n_pos:]
+        keep = ~empty if bool((~empty).any()) else torch.ones_like(empty)  # all empty: keep the batch defined
+        q, k_pos, k_neg, c_q, c_neg = (x[keep] for x in (q, k_pos, k_neg, c_q, c_neg))
         out = losses.surfsurg6d_loss(
             mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, key_coords=c_neg, key_emb=k_neg,
             alpha=cfg.alpha, beta=cfg.beta, lam=cfg.lam, m=cfg.m, pen_floor=cfg.pen_floor)
@@ -237,11 +241,12 @@ def _subset(ds, bop_indices: list[int]):
 
 def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | None = None, resume: bool = False,
           device: str | None = None, progress: bool = True, log_dir: str | Path | None = None,
-          init: str | Path | None = None) -> dict:
+          init: str | Path | None = None, imagenet: str | Path | None = None) -> dict:
     """Train on the BOP dataset ``data_dir``; writes ``out`` (checkpoint), and next to it
     ``<out stem>.metrics.jsonl``, ``<out stem>.curves.png`` and ``<out stem>.fp16.pt``. Returns a summary.
     ``init`` starts a new run from another checkpoint's weights (same parts and architecture; fresh optimiser,
-    step 0), e.g. to fine-tune a model on more data."""
+    step 0), e.g. to fine-tune a model on more data. ``imagenet``: a torchvision ``resnet18`` state-dict
+    file whose weights initialise the encoder of a new run (as in the paper; nothing is downloaded)."""
     from tqdm import tqdm
 
     from surftrack.data import BopDataset, CropDataset, MixedSampler, mixed_dataset
@@ -287,6 +292,9 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         model, _, blob = load_checkpoint(out, dev)
         if [p.mesh_sha256 for p in model.parts] != [p.mesh_sha256 for p in parts]:
             raise CheckpointError(f"{out}: checkpoint parts do not match the dataset's models; cannot resume")
+        if model.cfg != cfg.model:
+            raise CheckpointError(f"{out}: its model ({model.cfg}) differs from the config's ({cfg.model}); resume "
+                                  f"with the config it was trained with, or start afresh with --init")
         trainer = Trainer(model, cfg, dev)
         if blob.get("optimizer"):
             trainer.optimizer.load_state_dict(blob["optimizer"])
@@ -308,6 +316,15 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
             metrics_path.write_text("".join(r + "\n" for r in rows))
     else:
         model = SurfSurg6D(parts, cfg.model).to(dev)
+        if imagenet is not None:
+            try:
+                missing = load_imagenet_weights(model.net.encoder, imagenet)
+            except (OSError, RuntimeError, pickle.UnpicklingError) as e:
+                raise CheckpointError(f"{imagenet}: cannot load ImageNet weights: {str(e).splitlines()[0]}") from None
+            except ValueError as e:
+                raise CheckpointError(str(e)) from None
+            if missing:
+                raise CheckpointError(f"{imagenet}: not a resnet18 state dict (missing {missing[:3]})")
         if init is not None:
             src, _, _ = load_checkpoint(init, dev)
             if [p.mesh_sha256 for p in src.parts] != [p.mesh_sha256 for p in parts]:
