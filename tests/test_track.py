@@ -176,8 +176,10 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     """`surftrack VIDEO --boxes ...`: every frame of every tracked part gets a status, poses go to the
     MCAP in metres on the frame's time, and the unknown second tool is reported, not tracked."""
     out = tmp_path / "run.mcap"
-    cfg = tmp_path / "accept_all.yaml"  # the untrained model's poses score low: accept them to exercise every path
-    cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\n")
+    # the untrained model's poses score low: accept them to exercise every path; as they would stay in the
+    # boxes' crops, a part whose predicted box is partly outside the image counts as gone (the tool leaves)
+    cfg = tmp_path / "accept_all.yaml"
+    cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\nmin_visible: 0.9\n")
     rc = main([str(clip / "video.mp4"), "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"),
                "--model", str(tiny_ckpt), "-o", str(out), "--images", "--quiet", "--keyframe-every", "5",
                "--config", str(cfg), "--joints-csv", str(tmp_path / "joints.csv")])
