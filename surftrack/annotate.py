@@ -244,12 +244,12 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     fitters = {}
     joints = opts.joints or opts.joints_csv is not None
     if joints or opts.config.kinematic:
-        from surftrack.pose.kinematic import described_instrument
+        from surftrack.pose.kinematic import described_instrument, part_hashes
         from surftrack.track.articulation import ArticulationTracker
 
+        hashes = part_hashes(model.parts)
         for inst in sorted({s.instrument for s in specs}):
-            described, why = described_instrument(inst, {p.name: p.mesh_sha256 for p in model.parts
-                                                         if p.instrument == inst}, caller_reports=True)
+            described, why = described_instrument(inst, hashes[inst], caller_reports=True)
             if described is None:
                 lost = " and ".join(w for w, on in (("no joint angles", joints),
                                                     ("no instrument-consistent fit", opts.config.kinematic)) if on)

@@ -103,11 +103,9 @@ def load_instrument_file(path: str | Path) -> Instrument:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as e:
         raise InstrumentError(f"{path}: cannot read instrument description: {yaml_problem(e)}") from None
-    if not isinstance(doc, dict) or "name" not in doc or not doc.get("parts"):
+    if not isinstance(doc, dict) or not doc.get("parts"):
         raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
-    aliases = doc.get("aliases") or []
-    if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
-        raise InstrumentError(f"{path}: 'aliases' must be a list of names, e.g. [lnd]")
+    _, aliases = _checked_names(doc, path)
     limits_deg = doc.get("joint_limits_deg", {})
     try:
         limits = JointLimits({k: (float(np.radians(lo)), float(np.radians(hi))) for k, (lo, hi) in limits_deg.items()})
@@ -165,18 +163,39 @@ def user_instrument_files() -> list[Path]:
     return files
 
 
-def _names(f: Path) -> tuple[str, list[str]]:
-    """(name, aliases) of the description ``f``, checked as :func:`load_instrument_file` checks them."""
-    try:
-        doc = yaml.safe_load(f.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("name"), str) or not doc["name"]:
-        raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
+def _checked_names(doc: dict, where: Path) -> tuple[str, list[str]]:
+    """(name, aliases) of a parsed description, or :class:`InstrumentError` naming ``where``."""
+    if not isinstance(doc.get("name"), str) or not doc["name"]:
+        raise InstrumentError(f"{where}: an instrument description needs 'name' and a list of 'parts'")
     aliases = doc.get("aliases") or []
     if not isinstance(aliases, list) or not all(isinstance(a, str) and a for a in aliases):
-        raise InstrumentError(f"{f}: 'aliases' must be a list of names, e.g. [lnd]")
+        raise InstrumentError(f"{where}: 'aliases' must be a list of names, e.g. [lnd]")
     return doc["name"], aliases
+
+
+def _known() -> dict[str, tuple[Path, str]]:
+    """Name or alias -> (description file, instrument name), as :func:`instrument_files` documents."""
+    out: dict[str, tuple[Path, str]] = {}
+    builtin: set[str] = set()
+    for user, f in ([(False, f) for f in sorted((configs_dir() / "instruments").glob("*.yaml"))]
+                    + [(True, f) for f in user_instrument_files()]):
+        try:
+            doc = yaml.safe_load(f.read_text())
+        except (OSError, yaml.YAMLError) as e:
+            raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
+        if not isinstance(doc, dict):
+            raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
+        name, aliases = _checked_names(doc, f)
+        for key in [name, *aliases]:
+            if not user:
+                out[key] = (f, name)
+                builtin.add(key)
+            elif key in builtin and out[key][0].resolve() != f.resolve():
+                raise InstrumentError(f"{f}: {key!r} is the built-in instrument described in {out[key][0]}; "
+                                      "give your instrument another name and aliases")
+            else:
+                out.setdefault(key, (f, name))
+    return out
 
 
 def instrument_files() -> dict[str, Path]:
@@ -184,24 +203,12 @@ def instrument_files() -> dict[str, Path]:
     (``configs/instruments``) and the user's (:func:`user_instrument_files`; where two of those claim a
     name, the first listed wins). A user's description may not claim a built-in name or alias: that
     raises :class:`InstrumentError` naming both files."""
-    out: dict[str, Path] = {}
-    for f in sorted((configs_dir() / "instruments").glob("*.yaml")):
-        name, aliases = _names(f)
-        out.update({key: f for key in [name, *aliases]})
-    builtin = dict(out)
-    for f in user_instrument_files():
-        name, aliases = _names(f)
-        for key in [name, *aliases]:
-            if key in builtin and builtin[key].resolve() != f.resolve():
-                raise InstrumentError(f"{f}: {key!r} is the built-in instrument described in {builtin[key]}; "
-                                      "give your instrument another name and aliases")
-            out.setdefault(key, f)
-    return out
+    return {key: f for key, (f, _) in _known().items()}
 
 
 def list_instruments() -> list[str]:
     """Names (not aliases) of the known instruments (built-in and ``$SURFTRACK_INSTRUMENTS``)."""
-    return sorted({_names(f)[0] for f in set(instrument_files().values())})
+    return sorted({name for _, name in _known().values()})
 
 
 @lru_cache(maxsize=32)

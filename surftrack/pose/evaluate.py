@@ -40,7 +40,13 @@ from pathlib import Path
 import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
-from surftrack.pose.kinematic import KinematicConfig, apply_kinematics, check_anchor, described_instrument
+from surftrack.pose.kinematic import (
+    KinematicConfig,
+    apply_kinematics,
+    check_anchor,
+    described_instrument,
+    part_hashes,
+)
 
 __all__ = ["GROUPS", "evaluate", "group_stats", "markdown_table", "pose_errors", "summarize", "write_eval_outputs"]
 
@@ -188,14 +194,13 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(checkpoint, preset, device=device)
     if kinematic is True:
         kinematic = KinematicConfig()
-    fitted: list[str] = []
     if kinematic:
         check_anchor(kinematic, est.model.parts)
     bop = BopDataset(data_dir, split, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib)
     warn: list[str] = []
-    for name in sorted({p.instrument for p in est.model.parts}) if kinematic else []:
-        inst, why = described_instrument(name, {p.name: p.mesh_sha256 for p in est.model.parts if p.instrument == name},
-                                         caller_reports=True)
+    fitted: list[str] = []
+    for name, hashes in sorted(part_hashes(est.model.parts).items()) if kinematic else []:
+        inst, why = described_instrument(name, hashes, caller_reports=True)
         if inst is None:
             warn.append(f"{why}: its parts are evaluated on their per-part poses")
         else:

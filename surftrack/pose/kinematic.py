@@ -107,6 +107,15 @@ def described_instrument(name: str, part_hashes: Mapping[str, str] | None = None
     return _instruments[key]
 
 
+def part_hashes(model_parts: Sequence) -> dict[str, dict[str, str]]:
+    """Instrument -> {part: mesh SHA-256} of a model's parts (``model.parts``), as
+    :func:`described_instrument` takes them."""
+    out: dict[str, dict[str, str]] = defaultdict(dict)
+    for info in model_parts:
+        out[info.instrument][info.name] = info.mesh_sha256
+    return dict(out)
+
+
 def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None) -> Instrument | None:
     """:func:`described_instrument`'s instrument; None with one warning (per process and cause) when
     there is none, so its parts keep their per-part poses."""
@@ -148,9 +157,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
     if len(groups) != len(results):
         raise ValueError(f"need one group key per result, got {len(groups)} for {len(results)}")
     cfg = config or KinematicConfig()
-    hashes: dict[str, dict[str, str]] = defaultdict(dict)
-    for info in model_parts:
-        hashes[info.instrument][info.name] = info.mesh_sha256
+    hashes = part_hashes(model_parts)
     members: dict[tuple, list[int]] = defaultdict(list)
     for i, (r, g) in enumerate(zip(results, groups)):
         members[(r.instrument, g)].append(i)

@@ -96,10 +96,11 @@ class TrackConfig:
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("flow_floor_mm", "flow_floor_deg", "init_min_score"):
-            if not math.isfinite(getattr(self, name)) or (name != "init_min_score" and getattr(self, name) < 0):
-                raise ValueError(f"{name} must be a finite number{'' if name == 'init_min_score' else ' >= 0'}, "
-                                 f"got {getattr(self, name)}")
+        for name in ("flow_floor_mm", "flow_floor_deg"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
+        if not math.isfinite(self.init_min_score):
+            raise ValueError(f"init_min_score must be a finite number, got {self.init_min_score}")
 
     def kinematic_config(self) -> KinematicConfig | None:
         """The instrument-consistency settings for :func:`surftrack.pose.kinematic.apply_kinematics`, or
