@@ -307,11 +307,14 @@ def test_kinematic_settings_are_checked():
 
     cfg = load_track_config()
     assert cfg.kinematic is True and cfg.kinematic_anchor == "wrist" and cfg.kinematic_anchor_weight == 10.0
+    assert cfg.kinematic_config().anchor_translation_weight == cfg.kinematic_anchor_translation_weight == 3.0
     with pytest.raises(ValueError, match="kinematic must be true or false"):
         TrackConfig(kinematic="yes")
     for bad in (0.0, float("nan")):
         with pytest.raises(ValueError, match="kinematic_anchor_weight"):
             TrackConfig(kinematic_anchor_weight=bad)
+        with pytest.raises(ValueError, match="kinematic_anchor_translation_weight"):
+            TrackConfig(kinematic_anchor_translation_weight=bad)
 
 
 def test_tracking_settings_are_checked_with_the_file_named(tmp_path):

@@ -11,10 +11,11 @@ nonlinear least squares over
   free base rotation would make ``roll`` meaningless (any roll could be absorbed by the base);
 * the joints that the data determine (roll, pitch, yaw, opening; bounded by the joint limits).
 
-Residuals per used part ``p`` (weight ``w_p``): ``sqrt(w_p) * [L * log(R_fk^T R_p), t_fk - t_p]`` in mm,
-where ``L`` (``FitConfig.rotation_scale_mm``) turns radians into millimetres; with a trocar point ``c``
-the remote-centre-of-motion residual ``sqrt(w_c) * (I - d d^T)(c - o)`` (its norm is the distance, mm,
-from the trocar to the shaft axis through ``o`` along ``d``). Loss: ``soft_l1`` with scale
+Residuals per used part ``p`` (weights ``w_p``, ``v_p``): ``[sqrt(w_p) L log(R_fk^T R_p), sqrt(v_p) (t_fk
+- t_p)]`` in mm (``v_p = w_p`` unless a translation weight is given), where ``L``
+(``FitConfig.rotation_scale_mm``) turns radians into millimetres; with a trocar point ``c`` the
+remote-centre-of-motion residual ``sqrt(w_c) * (I - d d^T)(c - o)`` (its norm is the distance, mm, from
+the trocar to the shaft axis through ``o`` along ``d``). Loss: ``soft_l1`` with scale
 ``FitConfig.f_scale_mm``.
 
 Observability. Missing parts leave some joints undetermined: with only the shaft, pitch, yaw and opening
@@ -202,7 +203,7 @@ class _Problem:
                  w: np.ndarray, trocar: np.ndarray | None, cfg: FitConfig):
         self.instrument, self.names, self.cfg = instrument, names, cfg
         self.R_obs, self.t_obs = R_obs, t_obs
-        self.sw = np.sqrt(w)[:, None]
+        self.sw = np.sqrt(np.repeat(w, 3, axis=1))  # w (n, 2): rotation and translation weight per part
         self.trocar = trocar
         self.sw_trocar = math.sqrt(cfg.trocar_weight)
         self.ref = None if cfg.roll_reference is None else np.asarray(cfg.roll_reference, dtype=np.float64)
@@ -396,14 +397,17 @@ def _within(residuals: dict[str, tuple[float, float]], trocar_dist: float | None
 # --------------------------------------------------------------------------------------------- public
 def fit_configuration(instrument: Instrument, part_poses: Mapping[str, tuple[np.ndarray, np.ndarray]],
                       weights: Mapping[str, float] | None = None, trocar_mm: np.ndarray | None = None,
-                      init: JointFit | None = None, config: FitConfig | None = None) -> JointFit:
+                      init: JointFit | None = None, config: FitConfig | None = None,
+                      translation_weights: Mapping[str, float] | None = None) -> JointFit:
     """Base pose and joint state of ``instrument`` (from :func:`load_instrument`) that best explain
     ``part_poses`` ({part name: (R 3x3, t mm)}, model-to-camera; any non-empty subset of the parts).
 
-    ``weights``: per part (default 1; 0 drops the part). ``trocar_mm``: the remote centre of motion in
-    the camera frame (mm), adds the shaft-axis-through-trocar residual. ``init``: the previous frame's
-    fit, used as warm start and as the reference value of joints the data do not determine (see the
-    module docstring). Raises ``ValueError`` for unknown part names, malformed poses or no usable part.
+    ``weights``: per part (default 1; 0 drops the part). ``translation_weights``: per part, the weight of
+    its translation residual where it differs from ``weights``, which then weighs its rotation residual
+    only (parts whose rotations and translations are not equally reliable relative to each other).
+    ``trocar_mm``: the remote centre of motion in the camera frame (mm), adds the shaft-axis-through-trocar
+    residual. ``init``: the previous frame's fit, used as warm start and as the reference value of joints
+    the data do not determine (see the module docstring). Raises ``ValueError`` for unknown part names, malformed poses or no usable part.
     """
     cfg = config or FitConfig()
     if not part_poses:
@@ -425,7 +429,10 @@ def fit_configuration(instrument: Instrument, part_poses: Mapping[str, tuple[np.
             continue
         R, t = part_poses[name]
         poses[name] = se3(_as_rotation(R, f"part {name!r}"), _as_point(t, f"part {name!r} translation"))
-        w_list.append(w)
+        wt = float((translation_weights or {}).get(name, w))
+        if not (math.isfinite(wt) and wt >= 0):
+            raise ValueError(f"translation weight of part {name!r} must be a finite number >= 0, got {wt!r}")
+        w_list.append((w, wt))
     if not poses:
         raise ValueError("every given part has weight 0: nothing to fit")
     trocar = None if trocar_mm is None else _as_point(trocar_mm, "trocar_mm")

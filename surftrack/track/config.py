@@ -38,8 +38,9 @@ class TrackConfig:
     initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
-    replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``
-    weighted ``kinematic_anchor_weight`` times its score.
+    replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
+    rotation weighted ``kinematic_anchor_weight`` times its score and its translation
+    ``kinematic_anchor_translation_weight`` times.
     """
 
     preset: str = "fast"
@@ -64,6 +65,7 @@ class TrackConfig:
     kinematic: bool = True
     kinematic_anchor: str = "wrist"
     kinematic_anchor_weight: float = 10.0
+    kinematic_anchor_translation_weight: float = 3.0
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
 
     def __post_init__(self) -> None:
@@ -89,8 +91,9 @@ class TrackConfig:
         for name in ("max_points", "refresh_every", "max_predicted"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not (math.isfinite(self.kinematic_anchor_weight) and self.kinematic_anchor_weight > 0):
-            raise ValueError(f"kinematic_anchor_weight must be > 0, got {self.kinematic_anchor_weight}")
+        for name in ("kinematic_anchor_weight", "kinematic_anchor_translation_weight"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg"):
@@ -105,7 +108,10 @@ class TrackConfig:
     def kinematic_config(self) -> KinematicConfig | None:
         """The instrument-consistency settings for :func:`surftrack.pose.kinematic.apply_kinematics`, or
         None when ``kinematic`` is off."""
-        return KinematicConfig(self.kinematic_anchor, self.kinematic_anchor_weight) if self.kinematic else None
+        if not self.kinematic:
+            return None
+        return KinematicConfig(self.kinematic_anchor, self.kinematic_anchor_weight,
+                               anchor_translation_weight=self.kinematic_anchor_translation_weight)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
