@@ -407,7 +407,8 @@ def fit_configuration(instrument: Instrument, part_poses: Mapping[str, tuple[np.
     only (parts whose rotations and translations are not equally reliable relative to each other).
     ``trocar_mm``: the remote centre of motion in the camera frame (mm), adds the shaft-axis-through-trocar
     residual. ``init``: the previous frame's fit, used as warm start and as the reference value of joints
-    the data do not determine (see the module docstring). Raises ``ValueError`` for unknown part names, malformed poses or no usable part.
+    the data do not determine (see the module docstring). Raises ``ValueError`` for unknown part names,
+    malformed poses or no usable part.
     """
     cfg = config or FitConfig()
     if not part_poses:

@@ -11,8 +11,8 @@ the wrist, a jaw's position from the wrist and its own rotation from one joint a
 ``anchor`` gets ``anchor_weight`` times its score as the weight of its rotation: the part the estimator
 gets right most often (the LND's wrist: the largest, least symmetric part) then fixes the orientation and
 the others follow it. Its translation gets only ``anchor_translation_weight`` times its score: a monocular
-pose's weak coordinate is depth (on held-out LND images the part estimates are off by ~2 mm along the
-viewing ray and ~0.2 mm across it), the four parts' depth errors are nearly uncorrelated (|r| <= 0.17),
+pose's weak coordinate is depth (on LND development images the part estimates are off by ~2 mm along
+the viewing ray and ~0.2 mm across it), the four parts' depth errors are nearly uncorrelated (|r| <= 0.17),
 and the wrist's is only about half the others' (median relative depth error 2.3 % against 3.9-8.1 %), so
 inverse-variance fusion gives it about 3x a part's weight, not 10x. The fitted depth is then better than
 the anchor's own, and every part, the anchor included, takes its fitted pose. Both weights were chosen on
