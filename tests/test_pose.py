@@ -153,6 +153,10 @@ def test_tiny_model_end_to_end(tiny_model, preset):
     assert [len(f) for f in frames] == [3, 2] and [p.image_index for p in frames[1]] == [1, 1]
     for a, b in zip(out, frames[0]):
         assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+    # ... and do not depend on their place in the batch (the solver's seed comes from the crop itself)
+    later = est.estimate_batch([img[::-1].copy(), img], [[(2, (10.0, 10.0, 50.0, 40.0))], BOXES], [K_LND, K_LND])[1]
+    for a, b in zip(out, later):
+        assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
     assert est.estimate(img, {}, K_LND) == []
 
 

@@ -15,6 +15,7 @@ over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`box_from_bo
 from __future__ import annotations
 
 import time
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +93,14 @@ class _Crop:
     K_crop: np.ndarray
     pixels: np.ndarray
     prior: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def _crop_seed(seed: int, crop: _Crop) -> int:
+    """The random seed of one crop's solver: from the part and the crop box (to a thousandth of a pixel),
+    not from the crop's place in the batch, so a box gets the same pose whichever other boxes and frames
+    share its network forward (an evaluation's batches, the tracker's per-frame calls)."""
+    key = np.asarray([crop.obj_id, *crop.crop_box], np.float64).round(3).tobytes()
+    return int(seed) * 1_000_003 + zlib.crc32(key)
 
 
 class PoseEstimator:
@@ -231,7 +240,7 @@ class PoseEstimator:
             if limit:
                 torch.set_num_threads(self.solver_threads)
             for k, c in enumerate(crops):
-                results[c.image_index].append(self._solve(k, c, masks[k], queries[k], crop_ms, fwd_ms))
+                results[c.image_index].append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms))
         finally:
             if limit:
                 torch.set_num_threads(threads)
@@ -254,12 +263,12 @@ class PoseEstimator:
                 queries.append(q)
         return torch.cat(masks), torch.cat(queries), timer.ms["forward"] / len(crops)
 
-    def _solve(self, k: int, c: _Crop, mask: torch.Tensor, query: torch.Tensor, crop_ms: float,
+    def _solve(self, c: _Crop, mask: torch.Tensor, query: torch.Tensor, crop_ms: float,
                fwd_ms: float) -> PartPose:
         P, dev = self.preset, self.device
         timer = StageTimer(dev)
         gen = torch.Generator(device=dev)
-        gen.manual_seed(P.seed * 1_000_003 + k)
+        gen.manual_seed(_crop_seed(P.seed, c))
         if bank_is_cached(self.model, c.part_index, P.n_samples, P.seed, dev):
             bank = part_bank(self.model, c.part_index, P.n_samples, P.seed, dev)
         else:
