@@ -153,18 +153,23 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from surftrack.pose.evaluate import evaluate, markdown_table, write_eval_outputs
+    from surftrack.pose.preset import get_preset
 
     if args.max_images is not None and args.max_images <= 0:
         raise CLIError(f"--max-images must be positive, got {args.max_images}")
     if not 0.0 < args.occlusion_threshold <= 1.0:
         raise CLIError(f"--occlusion-threshold must be in (0, 1], got {args.occlusion_threshold}")
+    if args.seed < 0:
+        raise CLIError(f"--seed must be >= 0, got {args.seed}")
+    preset = get_preset(args.preset).replace(seed=args.seed)
     with _use_instruments(args.instrument):
-        r = evaluate(args.model, args.data, split=args.split, preset=args.preset, max_images=args.max_images,
+        r = evaluate(args.model, args.data, split=args.split, preset=preset, max_images=args.max_images,
                      occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet,
                      kinematic=args.kinematic)
     paths = write_eval_outputs(r, args.out)
     print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
-          f"preset {r['preset']}{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
+          f"preset {r['preset']} (seed {r['seed']})"
+          f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
           f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
     print(markdown_table(r), end="")
     for w in r["warnings"]:
@@ -291,6 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default: eval.json)")
     ev.add_argument("--preset", default="accurate", choices=["accurate", "fast"], help="estimator preset")
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
+    ev.add_argument("--seed", type=int, default=0,
+                    help="random seed of the pose solver (surface samples, hypotheses; default 0); on ~100 images "
+                         "the figures move by a few points with it: compare models over several seeds")
     ev.add_argument("--occlusion-threshold", type=float, default=0.9,
                     help="instances with visib_fract below it count as occluded (default: 0.9)")
     ev.add_argument("--kinematic", action="store_true",

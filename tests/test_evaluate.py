@@ -211,6 +211,7 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
         (["--model", str(ckpt), "--data", str(tmp_path / "nodata")], "dataset root is missing"),
         (["--model", str(ckpt), "--data", str(root), "--split", "test"], "split folder is missing"),
         (["--model", str(ckpt), "--data", str(root), "--max-images", "0"], "--max-images"),
+        (["--model", str(ckpt), "--data", str(root), "--seed", "-1"], "--seed"),
     ]
     for args, msg in cases:
         assert main(["eval", *args, "--out", str(tmp_path / "e.json"), "--quiet"]) == 2
@@ -218,9 +219,10 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
         assert err.startswith("surftrack: error:") and msg in err and err.count("\n") == 1, err
     out = tmp_path / "ok" / "e.json"
     assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
-                 "--max-images", "1", "--out", str(out), "--device", "cpu", "--quiet"]) == 0
+                 "--max-images", "1", "--seed", "5", "--out", str(out), "--device", "cpu", "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "| **Avg** |" in printed and str(out.with_suffix(".bop.csv")) in printed
+    assert "| **Avg** |" in printed and str(out.with_suffix(".bop.csv")) in printed and "(seed 5)" in printed
+    assert json.loads(out.read_text())["seed"] == 5
     assert all(p.is_file() for p in (out, out.with_suffix(".md"), out.with_suffix(".png")))
 
 
