@@ -301,7 +301,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     summary = summarize(records, parts_info, occlusion_threshold)
     ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
     return {
-        "checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name, "seed": est.preset.seed,
+        "checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
+        "seed": est.preset.seed,
         "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": fitted,
         "device": str(est.device), "n_images": len(keys), "n_instances": len(records),
         "skipped_unknown_obj": skipped,

@@ -14,10 +14,10 @@ the others follow it. Its translation gets only ``anchor_translation_weight`` ti
 pose's weak coordinate is depth (on LND development images the part estimates are off by ~2 mm along
 the viewing ray and ~0.2 mm across it), the four parts' depth errors are nearly uncorrelated (|r| <= 0.17),
 and the wrist's is only about half the others' (median relative depth error 2.3 % against 3.9-8.1 %), so
-inverse-variance fusion gives it about 3x a part's weight, not 10x. The fitted depth is then better than
-the anchor's own, and every part, the anchor included, takes its fitted pose. Both weights were chosen on
-development sets (80 LND images, seed 14; 200, seed 22) separate from the held-out sets of the model
-card.
+inverse-variance fusion gives it about 3x a part's weight, not 10x. Every part, the anchor included,
+takes its fitted pose. Both weights were chosen on development sets (80 LND images, seed 14; 200, seed
+22) separate from the held-out sets of the model card, which gives what the fusion gained (it varies
+with the solver's random draws).
 
 :func:`consistent_poses` works on poses; :func:`apply_kinematics` on a frame's :class:`PartPose` list,
 grouped by instrument instance.
