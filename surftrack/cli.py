@@ -152,29 +152,39 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from surftrack.pose.evaluate import evaluate, markdown_table, write_eval_outputs
+    from surftrack.pose.evaluate import evaluate, markdown_table, seed_table, write_eval_outputs
     from surftrack.pose.preset import get_preset
 
     if args.max_images is not None and args.max_images <= 0:
         raise CLIError(f"--max-images must be positive, got {args.max_images}")
     if not 0.0 < args.occlusion_threshold <= 1.0:
         raise CLIError(f"--occlusion-threshold must be in (0, 1], got {args.occlusion_threshold}")
-    if args.seed < 0:
-        raise CLIError(f"--seed must be >= 0, got {args.seed}")
-    preset = get_preset(args.preset).replace(seed=args.seed)
-    with _use_instruments(args.instrument):
-        r = evaluate(args.model, args.data, split=args.split, preset=preset, max_images=args.max_images,
-                     occlusion_threshold=args.occlusion_threshold, device=args.device, progress=not args.quiet,
-                     kinematic=args.kinematic)
-    paths = write_eval_outputs(r, args.out)
-    print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
-          f"preset {r['preset']} (seed {r['seed']})"
-          f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
-          f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
-    print(markdown_table(r), end="")
-    for w in r["warnings"]:
-        print(f"warning: {w}")
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    if any(s < 0 for s in args.seed) or len(set(args.seed)) != len(args.seed):
+        raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, args.seed))}")
+    out = Path(args.out)
+    results = []
+    for seed in args.seed:  # several seeds: one set of outputs each, <stem>.seedN.*, and a table of them
+        preset = get_preset(args.preset).replace(seed=seed)
+        with _use_instruments(args.instrument):
+            r = evaluate(args.model, args.data, split=args.split, preset=preset, max_images=args.max_images,
+                         occlusion_threshold=args.occlusion_threshold, device=args.device,
+                         progress=not args.quiet, kinematic=args.kinematic)
+        one = out if len(args.seed) == 1 else out.with_name(f"{out.stem}.seed{seed}{out.suffix}")
+        paths = write_eval_outputs(r, one)
+        print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
+              f"preset {r['preset']} (seed {r['seed']})"
+              f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
+              f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
+        print(markdown_table(r), end="")
+        for w in r["warnings"]:
+            print(f"warning: {w}")
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
+        results.append(r)
+    if len(results) > 1:
+        table = seed_table(results)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".seeds.md").write_text(table)
+        print(f"\nADD-10 per solver seed:\n{table}wrote {out.with_suffix('.seeds.md')}")
     return 0
 
 
@@ -296,9 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default: eval.json)")
     ev.add_argument("--preset", default="accurate", choices=["accurate", "fast"], help="estimator preset")
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
-    ev.add_argument("--seed", type=int, default=0,
-                    help="random seed of the pose solver (surface samples, hypotheses; default 0); on ~100 images "
-                         "the figures move by a few points with it: compare models over several seeds")
+    ev.add_argument("--seed", type=int, nargs="+", default=[0], metavar="N",
+                    help="random seed(s) of the pose solver (surface samples, hypotheses; default 0). On ~100 "
+                         "images the figures move by a few points with it: give several (--seed 0 1 2) to get "
+                         "one evaluation each (<out stem>.seedN.*) and a table of ADD-10 per seed with the mean")
     ev.add_argument("--occlusion-threshold", type=float, default=0.9,
                     help="instances with visib_fract below it count as occluded (default: 0.9)")
     ev.add_argument("--kinematic", action="store_true",

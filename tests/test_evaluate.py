@@ -14,7 +14,8 @@ from surftrack.model.checkpoint import save_checkpoint
 from surftrack.model.config import TrainConfig
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
 from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop
-from surftrack.pose.evaluate import evaluate, group_stats, markdown_table, pose_errors, summarize, write_eval_outputs
+from surftrack.pose.evaluate import (evaluate, group_stats, markdown_table, pose_errors, seed_table, summarize,
+                                     write_eval_outputs)
 from surftrack.synth.config import load_synth_config
 from surftrack.synth.generate import generate_dataset
 
@@ -212,6 +213,7 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
         (["--model", str(ckpt), "--data", str(root), "--split", "test"], "split folder is missing"),
         (["--model", str(ckpt), "--data", str(root), "--max-images", "0"], "--max-images"),
         (["--model", str(ckpt), "--data", str(root), "--seed", "-1"], "--seed"),
+        (["--model", str(ckpt), "--data", str(root), "--seed", "1", "1"], "--seed takes distinct"),
     ]
     for args, msg in cases:
         assert main(["eval", *args, "--out", str(tmp_path / "e.json"), "--quiet"]) == 2
@@ -224,6 +226,30 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
     assert "| **Avg** |" in printed and str(out.with_suffix(".bop.csv")) in printed and "(seed 5)" in printed
     assert json.loads(out.read_text())["seed"] == 5
     assert all(p.is_file() for p in (out, out.with_suffix(".md"), out.with_suffix(".png")))
+    # several seeds: one set of outputs each and a table of ADD-10 per seed with the mean
+    many = tmp_path / "many" / "e.json"
+    assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
+                 "--max-images", "1", "--seed", "0", "3", "--out", str(many), "--device", "cpu", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| Part | seed 0 | seed 3 | mean | range |" in printed and "| **Avg** |" in printed
+    for s in (0, 3):
+        assert json.loads((many.parent / f"e.seed{s}.json").read_text())["seed"] == s
+    assert not many.exists() and (many.parent / "e.seeds.md").read_text() in printed
+
+
+def test_seed_table_averages_the_seeds():
+    def result(seed, wrist, avg):
+        parts = {"lnd wrist": {"all": {"add10_surgripe": wrist}}, "lnd shaft": {"all": {"add10_surgripe": None}}}
+        return {"seed": seed, "preset": "fast", "n_images": 3, "parts": parts,
+                "overall": {"all": {"add10_surgripe": avg}}}
+
+    table = seed_table([result(0, 0.5, 0.4), result(1, 0.6, 0.5), result(2, 0.7, 0.3)])
+    assert "| Part | seed 0 | seed 1 | seed 2 | mean | range |" in table
+    assert "| lnd wrist | 50.00 | 60.00 | 70.00 | 60.00 | 50.00-70.00 |" in table
+    assert "| lnd shaft | – | – | – | – | – |" in table  # no instance of the part: no figure
+    assert "| **Avg** | 40.00 | 50.00 | 30.00 | 40.00 | 30.00-50.00 |" in table
+    with pytest.raises(ValueError):
+        seed_table([])
 
 
 def test_kinematic_evaluation_fixes_the_shaft_roll(tiny):

@@ -365,6 +365,30 @@ def markdown_table(result: Mapping, diameter: str = "surgripe", stat: str = "mea
     return "\n".join(lines) + "\n"
 
 
+def seed_table(results: Sequence[Mapping], diameter: str = "surgripe") -> str:
+    """ADD-10 (%) per part and overall of evaluations that differ only in the pose solver's seed: a column
+    per seed, then their mean and range. On ~100 images one seed's figure moves by a few points, so models
+    are best compared on the mean."""
+    if diameter not in DIAMETERS:
+        raise ValueError(f"diameter must be one of {sorted(DIAMETERS)}")
+    if not results:
+        raise ValueError("seed_table needs at least one evaluation")
+    key = f"add10_{diameter}"
+    rows = [(label, [r["parts"].get(label, {}).get("all", {}).get(key) for r in results])
+            for label in results[0]["parts"]]
+    rows.append(("**Avg**", [r["overall"]["all"][key] for r in results]))
+    head = ["Part", *(f"seed {r.get('seed')}" for r in results), "mean", "range"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, vals in rows:
+        got = [v for v in vals if v is not None]
+        stats = [_fmt(float(np.mean(got)) if got else None, 100),
+                 f"{100 * min(got):.2f}-{100 * max(got):.2f}" if got else "–"]
+        lines.append("| " + " | ".join([label, *(_fmt(v, 100) for v in vals), *stats]) + " |")
+    lines += ["", f"ADD-10 (%): ADD < 10 % of the {DIAMETERS[diameter]}; preset {results[0].get('preset')}, "
+                  f"{results[0].get('n_images')} images, one evaluation per pose-solver seed."]
+    return "\n".join(lines) + "\n"
+
+
 def _json_safe(x):
     if isinstance(x, float):
         return x if math.isfinite(x) else None
