@@ -162,28 +162,27 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if any(s < 0 for s in args.seed) or len(set(args.seed)) != len(args.seed):
         raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, args.seed))}")
     out = Path(args.out)
+    preset = get_preset(args.preset)
     results = []
-    for seed in args.seed:  # several seeds: one set of outputs each, <stem>.seedN.*, and a table of them
-        preset = get_preset(args.preset).replace(seed=seed)
-        with _use_instruments(args.instrument):
-            r = evaluate(args.model, args.data, split=args.split, preset=preset, max_images=args.max_images,
-                         occlusion_threshold=args.occlusion_threshold, device=args.device,
-                         progress=not args.quiet, kinematic=args.kinematic)
-        one = out if len(args.seed) == 1 else out.with_name(f"{out.stem}.seed{seed}{out.suffix}")
-        paths = write_eval_outputs(r, one)
-        print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} ({args.split}), "
-              f"preset {r['preset']} (seed {r['seed']})"
-              f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
-              f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
-        print(markdown_table(r), end="")
-        for w in r["warnings"]:
-            print(f"warning: {w}")
-        print("wrote " + ", ".join(str(p) for p in paths.values()))
-        results.append(r)
+    with _use_instruments(args.instrument):
+        for seed in args.seed:  # several seeds: one set of outputs each, <stem>.seedN.*, and a table of them
+            r = evaluate(args.model, args.data, split=args.split, preset=preset.replace(seed=seed),
+                         max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
+                         device=args.device, progress=not args.quiet, kinematic=args.kinematic)
+            one = out if len(args.seed) == 1 else out.with_name(f"{out.stem}.seed{seed}{out.suffix}")
+            paths = write_eval_outputs(r, one)
+            print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} "
+                  f"({args.split}), preset {r['preset']} (seed {r['seed']})"
+                  f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
+                  f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
+            print(markdown_table(r), end="")
+            for w in r["warnings"]:
+                print(f"warning: {w}")
+            print("wrote " + ", ".join(str(p) for p in paths.values()))
+            results.append(r)
     if len(results) > 1:
         table = seed_table(results)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.with_suffix(".seeds.md").write_text(table)
+        out.with_suffix(".seeds.md").write_text(table)  # the per-seed outputs made its folder
         print(f"\nADD-10 per solver seed:\n{table}wrote {out.with_suffix('.seeds.md')}")
     return 0
 
