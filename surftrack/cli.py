@@ -152,7 +152,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from surftrack.pose.evaluate import evaluate, markdown_table, seed_table, write_eval_outputs
+    from surftrack.pose.evaluate import evaluate, evaluate_seeds, markdown_table, seed_table, write_eval_outputs
     from surftrack.pose.preset import get_preset
 
     if args.max_images is not None and args.max_images <= 0:
@@ -163,23 +163,24 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, args.seed))}")
     out = Path(args.out)
     preset = get_preset(args.preset)
-    results = []
+    kwargs = dict(split=args.split, max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
+                  device=args.device, progress=not args.quiet, kinematic=args.kinematic)
     with _use_instruments(args.instrument):
-        for seed in args.seed:  # several seeds: one set of outputs each, <stem>.seedN.*, and a table of them
-            r = evaluate(args.model, args.data, split=args.split, preset=preset.replace(seed=seed),
-                         max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
-                         device=args.device, progress=not args.quiet, kinematic=args.kinematic)
-            one = out if len(args.seed) == 1 else out.with_name(f"{out.stem}.seed{seed}{out.suffix}")
-            paths = write_eval_outputs(r, one)
-            print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} "
-                  f"({args.split}), preset {r['preset']} (seed {r['seed']})"
-                  f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
-                  f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
-            print(markdown_table(r), end="")
-            for w in r["warnings"]:
-                print(f"warning: {w}")
-            print("wrote " + ", ".join(str(p) for p in paths.values()))
-            results.append(r)
+        if len(args.seed) == 1:
+            results = [evaluate(args.model, args.data, preset=preset.replace(seed=args.seed[0]), **kwargs)]
+        else:  # one network forward for all seeds; one set of outputs each, <stem>.seedN.*, and a table
+            results = evaluate_seeds(args.model, args.data, args.seed, preset=preset, **kwargs)
+    for r in results:
+        one = out if len(results) == 1 else out.with_name(f"{out.stem}.seed{r['seed']}{out.suffix}")
+        paths = write_eval_outputs(r, one)
+        print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} "
+              f"({args.split}), preset {r['preset']} (seed {r['seed']})"
+              f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
+              f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
+        print(markdown_table(r), end="")
+        for w in r["warnings"]:
+            print(f"warning: {w}")
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
     if len(results) > 1:
         table = seed_table(results)
         out.with_suffix(".seeds.md").write_text(table)  # the per-seed outputs made its folder
@@ -308,7 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=int, nargs="+", default=[0], metavar="N",
                     help="random seed(s) of the pose solver (surface samples, hypotheses; default 0). On ~100 "
                          "images the figures move by a few points with it: give several (--seed 0 1 2) to get "
-                         "one evaluation each (<out stem>.seedN.*) and a table of ADD-10 per seed with the mean")
+                         "one evaluation each (<out stem>.seedN.*; one network forward for all) and a table of "
+                         "ADD-10 per seed with the mean")
     ev.add_argument("--occlusion-threshold", type=float, default=0.9,
                     help="instances with visib_fract below it count as occluded (default: 0.9)")
     ev.add_argument("--kinematic", action="store_true",

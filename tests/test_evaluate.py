@@ -14,7 +14,8 @@ from surftrack.model.checkpoint import save_checkpoint
 from surftrack.model.config import TrainConfig
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
 from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop
-from surftrack.pose.evaluate import (evaluate, group_stats, markdown_table, pose_errors, seed_table, summarize,
+from surftrack.pose.preset import get_preset
+from surftrack.pose.evaluate import (evaluate, evaluate_seeds, group_stats, markdown_table, pose_errors, seed_table, summarize,
                                      write_eval_outputs)
 from surftrack.synth.config import load_synth_config
 from surftrack.synth.generate import generate_dataset
@@ -250,6 +251,31 @@ def test_seed_table_averages_the_seeds():
     assert "| **Avg** | 40.00 | 50.00 | 30.00 | 40.00 | 30.00-50.00 |" in table
     with pytest.raises(ValueError):
         seed_table([])
+
+
+def test_evaluate_seeds_shares_the_forward_and_matches_single_seed_runs(tiny):
+    root, ckpt = tiny
+    est = PoseEstimator(ckpt, "fast", device="cpu")
+    calls = []
+    forward = est._forward
+    est._forward = lambda crops: calls.append(len(crops)) or forward(crops)
+    many = evaluate_seeds(est, root, [0, 5], split="train", max_images=2, kinematic=True)
+    assert len(calls) == 1  # one batch of 2 images: one forward for both seeds
+    poses = {}
+    for r in many:
+        one = evaluate(PoseEstimator(ckpt, get_preset("fast").replace(seed=r["seed"]), device="cpu"), root,
+                       split="train", max_images=2, kinematic=True)
+        assert one["seed"] == r["seed"] and r["n_instances"] == one["n_instances"]
+        for a, b in zip(r["instances"], one["instances"]):
+            assert (a["scene_id"], a["im_id"], a["obj_id"]) == (b["scene_id"], b["im_id"], b["obj_id"])
+            np.testing.assert_allclose(a["R"], b["R"], atol=1e-9)
+            np.testing.assert_allclose(a["t"], b["t"], atol=1e-9)
+            assert a["add"] == pytest.approx(b["add"])
+        assert r["timings"]["per_image_s_mean"] > 0
+        poses[r["seed"]] = np.array([x["t"] for x in r["instances"]])
+    assert not np.allclose(poses[0], poses[5])  # the seed reaches the solver
+    with pytest.raises(ValueError, match="distinct"):
+        evaluate_seeds(ckpt, root, [1, 1], split="train")
 
 
 def test_kinematic_evaluation_fixes_the_shaft_roll(tiny):

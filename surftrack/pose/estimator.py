@@ -210,6 +210,29 @@ class PoseEstimator:
     def estimate_batch(self, images: Sequence[np.ndarray], boxes_per_image: Sequence,
                        Ks: Sequence, priors: Sequence[Mapping | None] | None = None) -> list[list[PartPose]]:
         """:meth:`estimate` for several frames; all crops share the network forward passes."""
+        crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
+        if not crops:
+            return [[] for _ in images]
+        masks, queries, fwd_ms = self._forward(crops)
+        return self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, self.preset.seed)
+
+    @torch.inference_mode()
+    def estimate_batch_seeds(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
+                             seeds: Sequence[int]) -> list[list[list[PartPose]]]:
+        """:meth:`estimate_batch` once per solver seed in ``seeds`` (the preset's seed replaced), from one
+        network forward: ``result[s][i]`` are image ``i``'s poses under ``seeds[s]``, each equal to what
+        ``estimate_batch`` with that seed returns. For measuring how much a figure owes to the solver's
+        random draws at the cost of one forward. The ``forward`` and ``crop`` timings are reported in
+        every seed's poses."""
+        crops, crop_ms = self._crops(images, boxes_per_image, Ks, None)
+        if not crops:
+            return [[[] for _ in images] for _ in seeds]
+        masks, queries, fwd_ms = self._forward(crops)
+        return [self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, int(s)) for s in seeds]
+
+    def _crops(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
+               priors: Sequence[Mapping | None] | None) -> tuple[list[_Crop], float]:
+        """The checked inputs as crops (in image, then box order) and the crop ms per crop."""
         if not (len(images) == len(boxes_per_image) == len(Ks)):
             raise ValueError(f"need as many box sets and K as images, got {len(images)}, {len(boxes_per_image)} "
                              f"and {len(Ks)}")
@@ -229,18 +252,19 @@ class PoseEstimator:
                 prior = None if pri is None else (pri.get(obj_id) if isinstance(pri, Mapping) else pri[j])
                 crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
                                    warp_image(img, M, S), prior))
-        crop_ms = (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
-        results: list[list[PartPose]] = [[] for _ in images]
-        if not crops:
-            return results
-        masks, queries, fwd_ms = self._forward(crops)
+        return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
+
+    def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
+                   crop_ms: float, fwd_ms: float, seed: int) -> list[list[PartPose]]:
+        """Every crop's pose with solver seed ``seed``, grouped per image."""
+        results: list[list[PartPose]] = [[] for _ in range(n_images)]
         threads = torch.get_num_threads()
         limit = self.device.type == "cpu" and self.solver_threads is not None and self.solver_threads != threads
         try:
             if limit:
                 torch.set_num_threads(self.solver_threads)
             for k, c in enumerate(crops):
-                results[c.image_index].append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms))
+                results[c.image_index].append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms, seed))
         finally:
             if limit:
                 torch.set_num_threads(threads)
@@ -264,16 +288,16 @@ class PoseEstimator:
         return torch.cat(masks), torch.cat(queries), timer.ms["forward"] / len(crops)
 
     def _solve(self, c: _Crop, mask: torch.Tensor, query: torch.Tensor, crop_ms: float,
-               fwd_ms: float) -> PartPose:
+               fwd_ms: float, seed: int) -> PartPose:
         P, dev = self.preset, self.device
         timer = StageTimer(dev)
         gen = torch.Generator(device=dev)
-        gen.manual_seed(_crop_seed(P.seed, c))
-        if bank_is_cached(self.model, c.part_index, P.n_samples, P.seed, dev):
-            bank = part_bank(self.model, c.part_index, P.n_samples, P.seed, dev)
+        gen.manual_seed(_crop_seed(seed, c))
+        if bank_is_cached(self.model, c.part_index, P.n_samples, seed, dev):
+            bank = part_bank(self.model, c.part_index, P.n_samples, seed, dev)
         else:
             with timer("keys"):  # first use of this part: sample the surface, compute and cache the keys
-                bank = part_bank(self.model, c.part_index, P.n_samples, P.seed, dev)
+                bank = part_bank(self.model, c.part_index, P.n_samples, seed, dev)
         with timer("correspondence"):
             field_ = build_field(mask, query, bank.keys, P.alpha, P.stride, P.mask_threshold, P.min_active,
                                  P.max_active, 4 * P.n_hypotheses, gen)

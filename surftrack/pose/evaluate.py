@@ -182,8 +182,32 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     whose object the model knows (others are counted in ``skipped_unknown_obj``). Raises
     :class:`surftrack.data.DatasetError` (bad data / split / empty selection) and
     :class:`surftrack.model.checkpoint.CheckpointError` (bad checkpoint)."""
+    return _evaluate(checkpoint, data_dir, split, preset, max_images, occlusion_threshold, device=device,
+                     images_per_batch=images_per_batch, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib,
+                     max_points=max_points, images=images, progress=progress, kinematic=kinematic)[0]
+
+
+def evaluate_seeds(checkpoint, data_dir, seeds: Sequence[int], **kwargs) -> list[dict]:
+    """:func:`evaluate` once per pose-solver seed in ``seeds`` (replacing the preset's), with one network
+    forward per batch for all of them: ``result[k]`` equals ``evaluate`` with the preset's seed set to
+    ``seeds[k]``, except for the timings (each seed's per-image time is its poses' stage timings, the
+    shared forward counted in each). On ~100 images ADD-10 moves by a few points with the seed, so compare
+    models on the mean over seeds (:func:`seed_table`). ``kwargs``: as :func:`evaluate`."""
+    seeds = [int(x) for x in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds must be distinct numbers >= 0, got {seeds}")
+    return _evaluate(checkpoint, data_dir, seeds=seeds, **kwargs)
+
+
+def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_images: int | None = None,
+              occlusion_threshold: float = 0.9, *, device=None, images_per_batch: int = 4,
+              min_visib_fract: float = 0.1, min_px_visib: int = 64, max_points: int = 5000,
+              images: Iterable[tuple[int, int]] | None = None, progress: bool = False,
+              kinematic=None, seeds: Sequence[int] | None = None) -> list[dict]:
+    """:func:`evaluate` / :func:`evaluate_seeds`: one result per seed (the preset's when ``seeds`` is None,
+    through :meth:`PoseEstimator.estimate_batch`)."""
     from surftrack.data.bop import BopDataset, DatasetError
-    from surftrack.pose.estimator import STAGES, PoseEstimator, box_from_bop
+    from surftrack.pose.estimator import PoseEstimator, box_from_bop
 
     if max_images is not None and int(max_images) < 1:
         raise ValueError(f"max_images must be positive, got {max_images}")
@@ -239,8 +263,10 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
         parts_info[o] = {"label": labels[o], "instrument": known[o].instrument, "part": known[o].name,
                          "diameter_bop_mm": diameter_max_pairwise(v), "diameter_surgripe_mm": diameter_bbox_diagonal(v)}
 
-    records: list[dict] = []
-    image_s: list[float] = []
+    shared = seeds is not None
+    seeds = [int(x) for x in seeds] if shared else [est.preset.seed]
+    records: dict[int, list[dict]] = {sd: [] for sd in seeds}
+    image_s: dict[int, list[float]] = {sd: [] for sd in seeds}
     load_s = 0.0
     t_start = time.perf_counter()
     batches = [keys[s:s + images_per_batch] for s in range(0, len(keys), images_per_batch)]
@@ -255,57 +281,79 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
         boxes = [[(i.obj_id, box_from_bop(i.bbox_visib)) for i in by_image[k]] for k in chunk]
         Ks = [by_image[k][0].K for k in chunk]
         t0 = time.perf_counter()
-        poses = est.estimate_batch(imgs, boxes, Ks)
-        if kinematic:  # timed with the estimator: it is part of what the tracker outputs
-            poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic)
-                     for k, pl in zip(chunk, poses)]
-        per_image = (time.perf_counter() - t0) / len(chunk)
-        for k, plist in zip(chunk, poses):
-            image_s.append(per_image)
-            for inst, p in zip(by_image[k], plist):
-                err = pose_errors(p.R, p.t, inst.R, inst.t, points[inst.obj_id])
-                d = parts_info[inst.obj_id]
-                records.append({
-                    "scene_id": inst.scene_id, "im_id": inst.im_id, "gt_index": inst.gt_index,
-                    "obj_id": inst.obj_id, "part": d["label"], "visib_fract": float(inst.visib_fract),
-                    "occluded": bool(inst.visib_fract < occlusion_threshold), "ok": bool(p.ok),
-                    "score": float(p.score), "n_inliers": int(p.n_inliers), **err,
-                    "add10_bop": bool(err["add"] < 0.1 * d["diameter_bop_mm"]),
-                    "add10_surgripe": bool(err["add"] < 0.1 * d["diameter_surgripe_mm"]),
-                    "R": np.asarray(p.R, np.float64).reshape(-1).tolist(),
-                    "t": np.asarray(p.t, np.float64).reshape(-1).tolist(),
-                    "time_s": per_image, "timings_ms": dict(p.timings)})
+        by_seed = est.estimate_batch_seeds(imgs, boxes, Ks, seeds) if shared else [est.estimate_batch(imgs, boxes, Ks)]
+        est_s = time.perf_counter() - t0
+        for sd, poses in zip(seeds, by_seed):
+            t0 = time.perf_counter()
+            if kinematic:  # timed with the estimator: it is part of what the tracker outputs
+                poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic)
+                         for k, pl in zip(chunk, poses)]
+            kin_s = time.perf_counter() - t0
+            for k, plist in zip(chunk, poses):
+                # one forward for all seeds: each seed's time is its poses' stage timings (forward included)
+                per_image = (sum(p.timings.get("total", 0.0) for p in plist) * 1e-3 if shared else
+                             est_s / len(chunk)) + kin_s / len(chunk)
+                image_s[sd].append(per_image)
+                for inst, p in zip(by_image[k], plist):
+                    records[sd].append(_record(inst, p, points[inst.obj_id], parts_info[inst.obj_id], per_image,
+                                               occlusion_threshold))
         if bar is not None:
             bar.update(len(chunk))
     if bar is not None:
         bar.close()
-    total_s = time.perf_counter() - t_start
+    wall_s = time.perf_counter() - t_start
+    for w in warn:
+        warnings.warn(w, stacklevel=3)
+    ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
+    common = {"checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
+              "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": fitted,
+              "device": str(est.device), "n_images": len(keys), "skipped_unknown_obj": skipped}
+    return [_result(common, sd, records[sd], image_s[sd], load_s, load_s + sum(image_s[sd]) if shared else wall_s,
+                    images_per_batch, shared, parts_info, obj_used, occlusion_threshold, warn) for sd in seeds]
+
+
+def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion_threshold: float) -> dict:
+    """One instance's JSON record: ground truth identity, the estimate and its errors."""
+    err = pose_errors(p.R, p.t, inst.R, inst.t, points)
+    return {
+        "scene_id": inst.scene_id, "im_id": inst.im_id, "gt_index": inst.gt_index,
+        "obj_id": inst.obj_id, "part": d["label"], "visib_fract": float(inst.visib_fract),
+        "occluded": bool(inst.visib_fract < occlusion_threshold), "ok": bool(p.ok),
+        "score": float(p.score), "n_inliers": int(p.n_inliers), **err,
+        "add10_bop": bool(err["add"] < 0.1 * d["diameter_bop_mm"]),
+        "add10_surgripe": bool(err["add"] < 0.1 * d["diameter_surgripe_mm"]),
+        "R": np.asarray(p.R, np.float64).reshape(-1).tolist(),
+        "t": np.asarray(p.t, np.float64).reshape(-1).tolist(),
+        "time_s": per_image, "timings_ms": dict(p.timings)}
+
+
+def _result(common: Mapping, seed: int, records: list[dict], image_s: list[float], load_s: float, total_s: float,
+            images_per_batch: int, shared: bool, parts_info: Mapping, obj_used: Sequence[int],
+            occlusion_threshold: float, warn: list[str]) -> dict:
+    """The JSON-ready result of one seed's records (see :func:`evaluate`)."""
+    from surftrack.pose.estimator import STAGES
 
     stage_ms = {s: float(np.mean([r["timings_ms"].get(s, 0.0) for r in records])) for s in (*STAGES, "total")}
     keys_ms = [r["timings_ms"]["keys"] for r in records if "keys" in r["timings_ms"]]
+    how = ("the sum of its instances' stage timings (the network forward, shared by the seeds of one "
+           "evaluate_seeds call, counted in each)" if shared else "estimate_batch wall time / images in the call")
     timings = {
         "per_instance_ms_mean": stage_ms,
         "surface_keys_ms_first_use": float(np.mean(keys_ms)) if keys_ms else None,
         "per_image_s_mean": float(np.mean(image_s)), "per_image_s_median": float(np.median(image_s)),
-        "image_load_s_total": load_s, "total_s": total_s, "images_per_s": len(keys) / max(total_s, 1e-9),
+        "image_load_s_total": load_s, "total_s": total_s,
+        "images_per_s": common["n_images"] / max(total_s, 1e-9),
         "images_per_batch": images_per_batch,
-        "note": "per-image time = estimate_batch wall time / images in the call (crops, network, solver; "
-                "image loading excluded); per-instance ms are the estimator's stage timings",
+        "note": f"per-image time = {how} (crops, network, solver, the kinematic fit if any; image loading "
+                "excluded); per-instance ms are the estimator's stage timings",
     }
     thresholds = np.linspace(0.0, CURVE_MAX_MM, 101)
     curve = {"thresholds_mm": thresholds.tolist(),
              "add": {parts_info[o]["label"]: accuracy_curve((r["add"] for r in records if r["obj_id"] == o), thresholds)
                      for o in obj_used} | {"all": accuracy_curve((r["add"] for r in records), thresholds)}}
-    for w in warn:
-        warnings.warn(w, stacklevel=2)
     summary = summarize(records, parts_info, occlusion_threshold)
-    ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
     return {
-        "checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
-        "seed": est.preset.seed,
-        "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": fitted,
-        "device": str(est.device), "n_images": len(keys), "n_instances": len(records),
-        "skipped_unknown_obj": skipped,
+        **common, "seed": seed, "n_instances": len(records),
         "occlusion": {"threshold": float(occlusion_threshold),
                       "definition": f"occluded = visib_fract < {occlusion_threshold} (BOP visib_fract: visible "
                                     "pixels / pixels of the unoccluded silhouette); non-occluded otherwise"},
