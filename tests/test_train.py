@@ -219,3 +219,28 @@ def test_int8_export_is_small_and_close(tmp_path):
     pts = torch.rand(50, 3) - 0.5  # the SIREN fields are kept in fp16, not quantised
     with torch.no_grad():
         assert torch.allclose(model.keys(1, pts), loaded.keys(1, pts), atol=2e-2)
+
+
+def test_validation_holds_out_whole_tissue_groups(tiny_data):
+    from types import SimpleNamespace
+
+    from surftrack.data.join import join_datasets
+    from surftrack.model.train import _split_instances, tissue_group_size
+
+    card = json.loads((tiny_data / "dataset_card.json").read_text())
+    assert tissue_group_size(card) == 3
+    joined = tiny_data.parent / "joined"
+    join_datasets(joined, [tiny_data, tiny_data])
+    assert tissue_group_size(json.loads((joined / "dataset_card.json").read_text())) == 3
+    assert tissue_group_size({"objects": {}}) == 1  # not ours: no grouping known
+    # 3 scenes of 100 images, 2 instances each, tissue groups of 10
+    bop = SimpleNamespace(instances=[SimpleNamespace(scene_id=s, im_id=i) for s in range(3) for i in range(100)
+                                     for _ in range(2)])
+    train_idx, val_idx = _split_instances(bop, 24, seed=0, group_size=10)
+    val = {(bop.instances[i].scene_id, bop.instances[i].im_id) for i in val_idx}
+    train = {(bop.instances[i].scene_id, bop.instances[i].im_id) for i in train_idx}
+    assert len(val) == 30 and not val & train and len(train_idx) + len(val_idx) == 600
+    assert {(s, i // 10) for s, i in val}.isdisjoint({(s, i // 10) for s, i in train})
+    # fewer than 10 groups: single images
+    _, val_idx = _split_instances(bop, 24, seed=0, group_size=50)
+    assert len({(bop.instances[i].scene_id, bop.instances[i].im_id) for i in val_idx}) == 24

@@ -12,6 +12,7 @@ import os
 import pickle
 import random
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
@@ -209,12 +210,35 @@ def plot_curves(metrics_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
-def _split_instances(bop, val_images: int, seed: int) -> tuple[list[int], list[int]]:
-    """Hold out whole images (every instance of them): about ``val_images`` images, drawn with ``seed``."""
+def tissue_group_size(card: Mapping) -> int:
+    """How many consecutive images (by im_id within a scene) share one tissue patch in the dataset of this
+    ``dataset_card.json`` (``surftrack synth``'s ``tissue.images_per_tissue``; for a joined dataset, that
+    of its sources when they agree); 1 when unknown (other BOP data)."""
+    cards = card.get("sources") if "joined" in card else [card]
+    try:
+        sizes = {int(c["config"]["tissue"]["images_per_tissue"]) for c in cards or []}
+    except (KeyError, TypeError, ValueError):
+        return 1
+    return sizes.pop() if len(sizes) == 1 else 1
+
+
+def _split_instances(bop, val_images: int, seed: int, group_size: int = 1) -> tuple[list[int], list[int]]:
+    """Hold out whole images (every instance of them): about ``val_images`` images, drawn with ``seed``.
+    With ``group_size`` > 1 (images ``k * group_size ...`` of a scene share a tissue patch: our generated
+    data), whole groups are held out, so that no held-out image shares its tissue with a training image;
+    when there are fewer than 10 groups, single images are (holding out one group would take too much)."""
     images = sorted({(r.scene_id, r.im_id) for r in bop.instances})
     rng = np.random.default_rng(seed)
     n_val = min(val_images, max(1, len(images) // 10)) if len(images) > 1 else 0
-    val_set = {images[i] for i in rng.choice(len(images), n_val, replace=False)} if n_val else set()
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for s, im in images:
+        groups.setdefault((s, im // max(int(group_size), 1)), []).append((s, im))
+    units = list(groups.values()) if len(groups) >= 10 else [[k] for k in images]
+    val_set: set[tuple[int, int]] = set()
+    for u in rng.permutation(len(units)) if n_val else []:
+        if len(val_set) >= n_val:
+            break
+        val_set.update(units[u])
     train_idx = [i for i, r in enumerate(bop.instances) if (r.scene_id, r.im_id) not in val_set]
     val_idx = [i for i, r in enumerate(bop.instances) if (r.scene_id, r.im_id) in val_set]
     return train_idx, val_idx
@@ -261,9 +285,10 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     bop = BopDataset(data_dir, min_visib_fract=cfg.data.min_visib_fract)
     obj_ids = sorted(bop.models)
     card = Path(data_dir) / "dataset_card.json"
-    names = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
+    card = json.loads(card.read_text()) if card.is_file() else {}
+    names = card.get("objects", {})
     parts = [PartInfo.from_part(o, names.get(str(o), {}).get("instrument", "unknown"), bop.models[o]) for o in obj_ids]
-    train_idx, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed)
+    train_idx, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed, tissue_group_size(card))
     common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
     syn_ds = CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
                          augment=cfg.data.augment, seed=cfg.run.seed, **common)
