@@ -94,8 +94,8 @@ class _GroundTruthEstimator:
     rolled by ``shaft_roll_deg`` about its own axis (the estimator's typical failure on a near-symmetric
     shaft). Everything the tracker does with the result is real."""
 
-    def __init__(self, model, gt, lnd_parts, shaft_roll_deg):
-        self.model, self.gt, self.frame = model, gt, 0
+    def __init__(self, model, gt, lnd_parts, shaft_roll_deg, scores=None):
+        self.model, self.gt, self.frame, self.scores = model, gt, 0, scores or {}
         self.tid = {info.obj_id: lnd_parts[info.name] for info in model.parts}
         a = np.radians(shaft_roll_deg)
         self.roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
@@ -109,9 +109,15 @@ class _GroundTruthEstimator:
             R, t, _ = self.gt.pose(self.frame, self.tid[obj_id])
             if info.name == "shaft":
                 R = R @ self.roll
-            out.append(PartPose(obj_id, info.name, info.instrument, R, t, 5.0, 200, True, {}, (0, 0, 1, 1),
-                                np.eye(3)))
+            out.append(PartPose(obj_id, info.name, info.instrument, R, t, self.scores.get(info.name, 5.0), 200, True,
+                                {}, (0, 0, 1, 1), np.eye(3)))
         return out
+
+
+def _frame_showing_every_part(gt, lnd_parts, n_frames):
+    i = max(range(1, n_frames), key=lambda k: min(gt.pose(k, tid)[2] for tid in lnd_parts.values()))
+    assert min(gt.pose(i, tid)[2] for tid in lnd_parts.values()) > 50, "a frame showing every LND part"
+    return i
 
 
 @pytest.mark.parametrize("kinematic", [True, False])
@@ -125,8 +131,7 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
     model = load_checkpoint(tiny_ckpt)[0]
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     frames = _frames(clip)
-    i = max(range(1, len(frames)), key=lambda k: min(gt.pose(k, tid)[2] for tid in lnd_parts.values()))
-    assert min(gt.pose(i, tid)[2] for tid in lnd_parts.values()) > 50, "a frame showing every LND part"
+    i = _frame_showing_every_part(gt, lnd_parts, len(frames))
     est = _GroundTruthEstimator(model, gt, lnd_parts, 15.0)
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
     tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, kinematic=kinematic))
@@ -144,6 +149,35 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         assert re < 1.0 and te < 0.5, (re, te)
     else:
         assert re > 12.0, re
+
+
+@pytest.mark.parametrize("wrist_score", [5.0, -0.5])
+def test_a_part_scoring_below_zero_is_placed_by_its_instrument(clip, lnd_parts, tiny_ckpt, wrist_score):
+    """A shaft half hidden by another tool scores below init_min_score (the occluder's pixels match none of
+    its surface): it is initialised all the same when the instrument fit placed it from a seen anchor, not
+    when the anchor (the wrist) is unseen too."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    i = _frame_showing_every_part(gt, lnd_parts, len(frames))
+    est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0, scores={"shaft": -0.3, "wrist": wrist_score})
+    est.frame = i
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig())
+    boxes = {}
+    for p in model.parts:
+        R, t, _ = gt.pose(i, lnd_parts[p.name])
+        boxes[lnd_parts[p.name]] = [(projected_box(K, R, t, p.vertices, (320, 256))[0], 0.9)]
+    states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, boxes)}
+    shaft = states["shaft"]
+    if wrist_score > 0:
+        assert shaft.status == "keyframe" and shaft.info["kinematic"] and shaft.info["score"] < 0
+        re, te = pose_distance(shaft.R, shaft.t, *gt.pose(i, lnd_parts["shaft"])[:2])
+        assert re < 1.0 and te < 0.5, (re, te)
+    else:
+        assert shaft.R is None and shaft.status != "keyframe"
+    assert states["jaw_left"].status == "keyframe"  # seen on its own either way
 
 
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):

@@ -35,12 +35,16 @@ class TrackConfig:
     3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
     independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
-    initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+    estimator pose is taken (initialisation or keyframe) with ``init_min_inliers`` inliers and a score >=
+    ``init_min_score``, or with those inliers alone when the instrument's kinematic fit placed the part from
+    a seen anchor (see ``kinematic``).
 
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
-    ``kinematic_anchor_translation_weight`` times.
+    ``kinematic_anchor_translation_weight`` times. A part placed so needs no score of its own: a part half
+    hidden by another tool scores below 0 (the occluder's pixels match none of its surface) although its
+    instrument, whose anchor is seen, places it well.
     """
 
     preset: str = "fast"

@@ -305,10 +305,19 @@ class Tracker:
                 results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                            self.estimator.model.parts, self._kinematic)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
+            # instruments whose fit had its anchor seen on this frame (apply_kinematics fits a group with an
+            # anchor only then; an instrument without that part has no anchor and earns no placement)
+            anchored = {(tr.spec.instrument, tr.spec.instance) for (tr, _, _, _), res in zip(requests, results)
+                        if self._kinematic is not None and tr.spec.part == self._kinematic.anchor
+                        and res.counts.get("kinematic")}
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
-                               prior_won=bool(res.counts.get("prior_won", 0)))
-                good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+                               prior_won=bool(res.counts.get("prior_won", 0)),
+                               kinematic=bool(res.counts.get("kinematic", 0)))
+                # a part placed by its instrument's fit from a seen anchor needs no score of its own: half
+                # hidden by another tool it scores below 0 (the occluder matches none of its surface)
+                placed = bool(res.counts.get("kinematic")) and (tr.spec.instrument, tr.spec.instance) in anchored
+                good = res.ok and res.n_inliers >= cfg.init_min_inliers and (placed or res.score >= cfg.init_min_score)
                 conf = float(1.0 - np.exp(-max(res.score, 0.0)))
                 if good:
                     tr.unseen = 0
