@@ -32,7 +32,7 @@ from pathlib import Path
 
 from surftrack.model import load_train_config
 from surftrack.model.checkpoint import CheckpointError, load_checkpoint
-from surftrack.model.train import _split_instances, train
+from surftrack.model.train import train, validation_split
 from surftrack.pose.evaluate import evaluate, write_eval_outputs
 
 
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         from surftrack.data import BopDataset
 
         bop = BopDataset(args.data, min_visib_fract=cfg.data.min_visib_fract)  # as train() reads it
-        _, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed)
+        _, val_idx = validation_split(bop, args.data, cfg)  # the images train() holds out
         images = sorted({(bop.instances[i].scene_id, bop.instances[i].im_id) for i in val_idx})
         if not images:
             raise SystemExit(f"{args.data}: too few images to hold any out; pass --eval-data")

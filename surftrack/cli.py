@@ -178,7 +178,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
               f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
               f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
         print(markdown_table(r), end="")
-        for w in r["warnings"]:
+        for w in r["warnings"] if r is results[0] else ():  # the same for every seed
             print(f"warning: {w}")
         print("wrote " + ", ".join(str(p) for p in paths.values()))
     if len(results) > 1:

@@ -14,9 +14,9 @@ from surftrack.model.checkpoint import save_checkpoint
 from surftrack.model.config import TrainConfig
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
 from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop
+from surftrack.pose.evaluate import (evaluate, evaluate_seeds, group_stats, markdown_table, pose_errors, seed_table,
+                                     summarize, write_eval_outputs)
 from surftrack.pose.preset import get_preset
-from surftrack.pose.evaluate import (evaluate, evaluate_seeds, group_stats, markdown_table, pose_errors, seed_table, summarize,
-                                     write_eval_outputs)
 from surftrack.synth.config import load_synth_config
 from surftrack.synth.generate import generate_dataset
 

@@ -151,11 +151,12 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         assert re > 12.0, re
 
 
-@pytest.mark.parametrize("wrist_score", [5.0, -0.5])
-def test_a_part_scoring_below_zero_is_placed_by_its_instrument(clip, lnd_parts, tiny_ckpt, wrist_score):
+@pytest.mark.parametrize("wrist_score, min_score", [(5.0, 0.0), (-0.5, 0.0), (0.2, 0.5)])
+def test_a_part_scoring_below_zero_is_placed_by_its_instrument(clip, lnd_parts, tiny_ckpt, wrist_score, min_score):
     """A shaft half hidden by another tool scores below init_min_score (the occluder's pixels match none of
-    its surface): it is initialised all the same when the instrument fit placed it from a seen anchor, not
-    when the anchor (the wrist) is unseen too."""
+    its surface): it is initialised all the same, with the anchor's confidence, when the instrument fit
+    placed it from an anchor (the wrist) that passed on its own; not when the anchor is unseen or short of
+    init_min_score itself."""
     from surftrack.model import load_checkpoint
 
     model = load_checkpoint(tiny_ckpt)[0]
@@ -164,19 +165,21 @@ def test_a_part_scoring_below_zero_is_placed_by_its_instrument(clip, lnd_parts, 
     est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0, scores={"shaft": -0.3, "wrist": wrist_score})
     est.frame = i
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
-    tracker = Tracker(est, K, (320, 256), specs, TrackConfig())
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(init_min_score=min_score))
     boxes = {}
     for p in model.parts:
         R, t, _ = gt.pose(i, lnd_parts[p.name])
         boxes[lnd_parts[p.name]] = [(projected_box(K, R, t, p.vertices, (320, 256))[0], 0.9)]
     states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, boxes)}
     shaft = states["shaft"]
-    if wrist_score > 0:
+    if wrist_score >= min_score:
         assert shaft.status == "keyframe" and shaft.info["kinematic"] and shaft.info["score"] < 0
+        assert shaft.confidence == pytest.approx(states["wrist"].confidence) and shaft.confidence > 0.9
         re, te = pose_distance(shaft.R, shaft.t, *gt.pose(i, lnd_parts["shaft"])[:2])
         assert re < 1.0 and te < 0.5, (re, te)
     else:
         assert shaft.R is None and shaft.status != "keyframe"
+        assert states["wrist"].R is None  # the anchor itself is not taken below init_min_score
     assert states["jaw_left"].status == "keyframe"  # seen on its own either way
 
 

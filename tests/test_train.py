@@ -233,6 +233,10 @@ def test_validation_holds_out_whole_tissue_groups(tiny_data):
     join_datasets(joined, [tiny_data, tiny_data])
     assert tissue_group_size(json.loads((joined / "dataset_card.json").read_text())) == 3
     assert tissue_group_size({"objects": {}}) == 1  # not ours: no grouping known
+    # sources that disagree: groups of their least common multiple (whole groups of each); nested joins
+    ours = [{"config": {"tissue": {"images_per_tissue": n}}} for n in (10, 4)]
+    assert tissue_group_size({"joined": [], "sources": ours}) == 20
+    assert tissue_group_size({"joined": [], "sources": [{"joined": [], "sources": ours}, ours[0]]}) == 20
     # 3 scenes of 100 images, 2 instances each, tissue groups of 10
     bop = SimpleNamespace(instances=[SimpleNamespace(scene_id=s, im_id=i) for s in range(3) for i in range(100)
                                      for _ in range(2)])

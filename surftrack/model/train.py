@@ -211,15 +211,26 @@ def plot_curves(metrics_path: Path, png_path: Path) -> None:
 
 
 def tissue_group_size(card: Mapping) -> int:
-    """How many consecutive images (by im_id within a scene) share one tissue patch in the dataset of this
-    ``dataset_card.json`` (``surftrack synth``'s ``tissue.images_per_tissue``; for a joined dataset, that
-    of its sources when they agree); 1 when unknown (other BOP data)."""
-    cards = card.get("sources") if "joined" in card else [card]
+    """How many consecutive images (by im_id within a scene) share one tissue group (the same patch and
+    base pose) in the dataset of this ``dataset_card.json``: ``surftrack synth``'s
+    ``tissue.images_per_tissue``; for a joined dataset, the least common multiple of its sources' (a group
+    of that size is a union of whole groups of every source); 1 when unknown (other BOP data)."""
+    if "joined" in card:
+        sizes = [tissue_group_size(c) for c in card.get("sources") or []]
+        return math.lcm(*sizes) if sizes else 1
     try:
-        sizes = {int(c["config"]["tissue"]["images_per_tissue"]) for c in cards or []}
+        return max(int(card["config"]["tissue"]["images_per_tissue"]), 1)
     except (KeyError, TypeError, ValueError):
         return 1
-    return sizes.pop() if len(sizes) == 1 else 1
+
+
+def validation_split(bop, data_dir: str | Path, cfg: TrainConfig) -> tuple[list[int], list[int]]:
+    """(training, validation) instance indices of ``bop`` (the dataset at ``data_dir``) as :func:`train`
+    splits them: about ``cfg.run.val_images`` images drawn with ``cfg.run.seed``, whole tissue groups of
+    our generated data (:func:`tissue_group_size`)."""
+    card_path = Path(data_dir) / "dataset_card.json"
+    card = json.loads(card_path.read_text()) if card_path.is_file() else {}
+    return _split_instances(bop, cfg.run.val_images, cfg.run.seed, tissue_group_size(card))
 
 
 def _split_instances(bop, val_images: int, seed: int, group_size: int = 1) -> tuple[list[int], list[int]]:
@@ -285,10 +296,9 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     bop = BopDataset(data_dir, min_visib_fract=cfg.data.min_visib_fract)
     obj_ids = sorted(bop.models)
     card = Path(data_dir) / "dataset_card.json"
-    card = json.loads(card.read_text()) if card.is_file() else {}
-    names = card.get("objects", {})
+    names = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
     parts = [PartInfo.from_part(o, names.get(str(o), {}).get("instrument", "unknown"), bop.models[o]) for o in obj_ids]
-    train_idx, val_idx = _split_instances(bop, cfg.run.val_images, cfg.run.seed, tissue_group_size(card))
+    train_idx, val_idx = validation_split(bop, data_dir, cfg)
     common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
     syn_ds = CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
                          augment=cfg.data.augment, seed=cfg.run.seed, **common)

@@ -17,7 +17,7 @@ from surftrack.pose.preset import PRESETS, Preset, Presets, get_preset
 from surftrack.pose.solver import Solution, solve_field
 from surftrack.pose.surface import SurfaceBank, clear_bank_cache, part_bank
 
-__all__ = ["CorrField", "PRESETS", "PartPose", "PoseEstimator", "Preset", "Presets", "Solution", "SurfaceBank", "box_from_bop",
-           "build_field", "clear_bank_cache", "evaluate", "evaluate_seeds", "get_preset", "grid_camera", "markdown_table", "p3p", "p4p",
-           "part_bank", "pool_to_grid", "seed_table", "solve_field", "solve_quartic", "square_crop_box", "summarize",
-           "write_eval_outputs"]
+__all__ = ["CorrField", "PRESETS", "PartPose", "PoseEstimator", "Preset", "Presets", "Solution", "SurfaceBank",
+           "box_from_bop", "build_field", "clear_bank_cache", "evaluate", "evaluate_seeds", "get_preset",
+           "grid_camera", "markdown_table", "p3p", "p4p", "part_bank", "pool_to_grid", "seed_table", "solve_field",
+           "solve_quartic", "square_crop_box", "summarize", "write_eval_outputs"]

@@ -218,17 +218,21 @@ class PoseEstimator:
 
     @torch.inference_mode()
     def estimate_batch_seeds(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
-                             seeds: Sequence[int]) -> list[list[list[PartPose]]]:
-        """:meth:`estimate_batch` once per solver seed in ``seeds`` (the preset's seed replaced), from one
-        network forward: ``result[s][i]`` are image ``i``'s poses under ``seeds[s]``, each equal to what
-        ``estimate_batch`` with that seed returns. For measuring how much a figure owes to the solver's
-        random draws at the cost of one forward. The ``forward`` and ``crop`` timings are reported in
-        every seed's poses."""
-        crops, crop_ms = self._crops(images, boxes_per_image, Ks, None)
+                             seeds: Sequence[int], priors: Sequence[Mapping | None] | None = None
+                             ) -> list[list[list[PartPose]]]:
+        """:meth:`estimate_batch` once per solver seed in ``seeds`` (distinct, >= 0; the preset's seed
+        replaced), from one network forward: ``result[s][i]`` are image ``i``'s poses under ``seeds[s]``,
+        each equal to what ``estimate_batch`` with that seed returns. For measuring how much a figure owes
+        to the solver's random draws at the cost of one forward. The ``forward`` and ``crop`` timings are
+        reported in every seed's poses."""
+        seeds = [int(s) for s in seeds]
+        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+            raise ValueError(f"seeds must be distinct numbers >= 0, got {seeds}")
+        crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
         if not crops:
             return [[[] for _ in images] for _ in seeds]
         masks, queries, fwd_ms = self._forward(crops)
-        return [self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, int(s)) for s in seeds]
+        return [self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, s) for s in seeds]
 
     def _crops(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
                priors: Sequence[Mapping | None] | None) -> tuple[list[_Crop], float]:

@@ -48,7 +48,8 @@ from surftrack.pose.kinematic import (
     part_hashes,
 )
 
-__all__ = ["GROUPS", "evaluate", "group_stats", "markdown_table", "pose_errors", "summarize", "write_eval_outputs"]
+__all__ = ["GROUPS", "evaluate", "evaluate_seeds", "group_stats", "markdown_table", "pose_errors", "seed_table",
+           "summarize", "write_eval_outputs"]
 
 #: Occlusion groups: key -> table heading.
 GROUPS = {"non_occ": "Non-occ", "occ": "occ", "all": "Avg"}
@@ -306,10 +307,10 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         warnings.warn(w, stacklevel=3)
     ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
     common = {"checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
-              "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": fitted,
+              "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": list(fitted),
               "device": str(est.device), "n_images": len(keys), "skipped_unknown_obj": skipped}
     return [_result(common, sd, records[sd], image_s[sd], load_s, load_s + sum(image_s[sd]) if shared else wall_s,
-                    images_per_batch, shared, parts_info, obj_used, occlusion_threshold, warn) for sd in seeds]
+                    images_per_batch, shared, parts_info, obj_used, occlusion_threshold, list(warn)) for sd in seeds]
 
 
 def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion_threshold: float) -> dict:
@@ -345,7 +346,9 @@ def _result(common: Mapping, seed: int, records: list[dict], image_s: list[float
         "images_per_s": common["n_images"] / max(total_s, 1e-9),
         "images_per_batch": images_per_batch,
         "note": f"per-image time = {how} (crops, network, solver, the kinematic fit if any; image loading "
-                "excluded); per-instance ms are the estimator's stage timings",
+                "excluded); total_s = " + ("image loading + the per-image times" if shared else
+                                           "wall time of the evaluation loop") +
+                "; per-instance ms are the estimator's stage timings",
     }
     thresholds = np.linspace(0.0, CURVE_MAX_MM, 101)
     curve = {"thresholds_mm": thresholds.tolist(),
@@ -353,7 +356,8 @@ def _result(common: Mapping, seed: int, records: list[dict], image_s: list[float
                      for o in obj_used} | {"all": accuracy_curve((r["add"] for r in records), thresholds)}}
     summary = summarize(records, parts_info, occlusion_threshold)
     return {
-        **common, "seed": seed, "n_instances": len(records),
+        **common, "kinematic_instruments": list(common["kinematic_instruments"]), "seed": seed,
+        "n_instances": len(records),
         "occlusion": {"threshold": float(occlusion_threshold),
                       "definition": f"occluded = visib_fract < {occlusion_threshold} (BOP visib_fract: visible "
                                     "pixels / pixels of the unoccluded silhouette); non-occluded otherwise"},

@@ -37,14 +37,14 @@ class TrackConfig:
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
     estimator pose is taken (initialisation or keyframe) with ``init_min_inliers`` inliers and a score >=
     ``init_min_score``, or with those inliers alone when the instrument's kinematic fit placed the part from
-    a seen anchor (see ``kinematic``).
+    an anchor that passed on its own (see ``kinematic``).
 
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
-    ``kinematic_anchor_translation_weight`` times. A part placed so needs no score of its own: a part half
-    hidden by another tool scores below 0 (the occluder's pixels match none of its surface) although its
-    instrument, whose anchor is seen, places it well.
+    ``kinematic_anchor_translation_weight`` times. A part placed so needs no score of its own, and reports the
+    anchor's confidence: a part half hidden by another tool scores below 0 (the occluder's pixels match
+    none of its surface) although its instrument, whose anchor is seen, places it well.
     """
 
     preset: str = "fast"

@@ -62,7 +62,8 @@ class PartSpec:
 class PartState:
     """One part on one frame. ``R``, ``t`` (mm, model-to-camera) are None when there is no pose.
     ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: diagnostics (points, inliers,
-    RMS px, Mahalanobis d2, estimator score, why the estimator ran)."""
+    RMS px, Mahalanobis d2, estimator score, why the estimator ran, ``kinematic``: whether the estimate
+    was replaced by the instrument fit's pose)."""
 
     spec: PartSpec
     status: str
@@ -170,6 +171,16 @@ class Tracker:
             if box_iou(best[0], pbox) > 0.0:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
+
+    def _passes(self, res) -> bool:
+        """Whether an estimate stands on its own: solved, ``init_min_inliers`` inliers and a score of at
+        least ``init_min_score``."""
+        return bool(res.ok and res.n_inliers >= self.cfg.init_min_inliers and res.score >= self.cfg.init_min_score)
+
+    @staticmethod
+    def _confidence(score: float) -> float:
+        """Confidence of an estimator pose from its score (0 at a score of 0 or below, towards 1 above)."""
+        return float(1.0 - np.exp(-max(score, 0.0)))
 
     def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
@@ -303,20 +314,26 @@ class Tracker:
                 results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                            self.estimator.model.parts, self._kinematic)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-            # instruments whose fit had its anchor seen on this frame (apply_kinematics fits a group with an
-            # anchor only then; an instrument without that part has no anchor and earns no placement)
-            anchored = {(tr.spec.instrument, tr.spec.instance) for (tr, _, _, _), res in zip(requests, results)
+            # instruments fitted on this frame with an anchor that passed the estimator gate on its own, and
+            # that anchor's confidence (an instrument without the anchor part earns no placement)
+            anchored = {(tr.spec.instrument, tr.spec.instance): self._confidence(res.score)
+                        for (tr, _, _, _), res in zip(requests, results)
                         if self._kinematic is not None and tr.spec.part == self._kinematic.anchor
-                        and res.counts.get("kinematic")}
+                        and res.counts.get("kinematic") and self._passes(res)}
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                                prior_won=bool(res.counts.get("prior_won", 0)),
                                kinematic=bool(res.counts.get("kinematic", 0)))
-                # a part placed by its instrument's fit from a seen anchor needs no score of its own: half
-                # hidden by another tool it scores below 0 (the occluder matches none of its surface)
-                placed = bool(res.counts.get("kinematic")) and (tr.spec.instrument, tr.spec.instance) in anchored
-                good = res.ok and res.n_inliers >= cfg.init_min_inliers and (placed or res.score >= cfg.init_min_score)
-                conf = float(1.0 - np.exp(-max(res.score, 0.0)))
+                # a part placed by its instrument's fit from an anchor that passed needs no score of its own:
+                # half hidden by another tool it scores below 0 (the occluder matches none of its surface);
+                # its pose, and the confidence it reports, are then mostly the anchor's
+                key = (tr.spec.instrument, tr.spec.instance)
+                placed = (bool(res.counts.get("kinematic")) and key in anchored
+                          and tr.spec.part != self._kinematic.anchor)
+                good = self._passes(res) or (placed and res.ok and res.n_inliers >= cfg.init_min_inliers)
+                conf = self._confidence(res.score)
+                if placed and not self._passes(res):
+                    conf = anchored[key]
                 if good:
                     tr.unseen = 0
                 if tr.has_pose and good:
