@@ -25,7 +25,7 @@ class TrackConfig:
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
-    part whose projected box keeps less than this fraction inside the image is lost.
+    part with less than this fraction of its vertices projecting inside the image is lost.
 
     Flow: up to ``max_points`` points per part; refreshed from the current pose on keyframes, every
     ``refresh_every`` frames and when fewer than ``refresh_below`` of them survive. A flow measurement
@@ -35,16 +35,12 @@ class TrackConfig:
     3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
     independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
-    estimator pose is taken (initialisation or keyframe) with ``init_min_inliers`` inliers and a score >=
-    ``init_min_score``, or with those inliers alone when the instrument's kinematic fit placed the part from
-    an anchor that passed on its own (see ``kinematic``).
+    initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
-    ``kinematic_anchor_translation_weight`` times. A part placed so needs no score of its own, and reports the
-    anchor's confidence: a part half hidden by another tool scores below 0 (the occluder's pixels match
-    none of its surface) although its instrument, whose anchor is seen, places it well.
+    ``kinematic_anchor_translation_weight`` times.
     """
 
     preset: str = "fast"

@@ -85,8 +85,10 @@ def box_iou(a: Box, b: Box) -> float:
 
 def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray,
                   size: tuple[int, int]) -> tuple[Box | None, float]:
-    """(box of the projected vertices clipped to the image (W, H), fraction of the unclipped box area
-    inside the image). (None, 0) when the part is behind the camera or entirely outside."""
+    """(box of the projected vertices clipped to the image (W, H), fraction of the vertices in front of the
+    camera that project inside the image). (None, 0) when the part is behind the camera or entirely
+    outside. The fraction counts the part, not its box: a shaft crossing a corner of the image
+    diagonally with half its length inside has half its vertices inside but only a quarter of its box."""
     uv, z = project(K, R, t, vertices)
     front = z > 1e-3
     if front.sum() < 3:
@@ -95,11 +97,11 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
     x0, y0 = uv.min(0)
     x1, y1 = uv.max(0) + 1.0  # pixel-edge box around pixel centres
     W, H = size
-    area = (x1 - x0) * (y1 - y0)
     cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, float(W)), min(y1, float(H))
-    if cx1 <= cx0 or cy1 <= cy0 or area <= 0:
+    if cx1 <= cx0 or cy1 <= cy0:
         return None, 0.0
-    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
+    inside = (uv[:, 0] > -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < H - 0.5)
+    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float(inside.sum() / len(vertices))
 
 
 class _Track:
@@ -171,16 +173,6 @@ class Tracker:
             if box_iou(best[0], pbox) > 0.0:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
-
-    def _passes(self, res) -> bool:
-        """Whether an estimate stands on its own: solved, ``init_min_inliers`` inliers and a score of at
-        least ``init_min_score``."""
-        return bool(res.ok and res.n_inliers >= self.cfg.init_min_inliers and res.score >= self.cfg.init_min_score)
-
-    @staticmethod
-    def _confidence(score: float) -> float:
-        """Confidence of an estimator pose from its score (0 at a score of 0 or below, towards 1 above)."""
-        return float(1.0 - np.exp(-max(score, 0.0)))
 
     def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
@@ -314,26 +306,12 @@ class Tracker:
                 results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                            self.estimator.model.parts, self._kinematic)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-            # instruments fitted on this frame with an anchor that passed the estimator gate on its own, and
-            # that anchor's confidence (an instrument without the anchor part earns no placement)
-            anchored = {(tr.spec.instrument, tr.spec.instance): self._confidence(res.score)
-                        for (tr, _, _, _), res in zip(requests, results)
-                        if self._kinematic is not None and tr.spec.part == self._kinematic.anchor
-                        and res.counts.get("kinematic") and self._passes(res)}
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                                prior_won=bool(res.counts.get("prior_won", 0)),
                                kinematic=bool(res.counts.get("kinematic", 0)))
-                # a part placed by its instrument's fit from an anchor that passed needs no score of its own:
-                # half hidden by another tool it scores below 0 (the occluder matches none of its surface);
-                # its pose, and the confidence it reports, are then mostly the anchor's
-                key = (tr.spec.instrument, tr.spec.instance)
-                placed = (bool(res.counts.get("kinematic")) and key in anchored
-                          and tr.spec.part != self._kinematic.anchor)
-                good = self._passes(res) or (placed and res.ok and res.n_inliers >= cfg.init_min_inliers)
-                conf = self._confidence(res.score)
-                if placed and not self._passes(res):
-                    conf = anchored[key]
+                good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+                conf = float(1.0 - np.exp(-max(res.score, 0.0)))
                 if good:
                     tr.unseen = 0
                 if tr.has_pose and good:
