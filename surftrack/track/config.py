@@ -25,7 +25,7 @@ class TrackConfig:
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
-    part with less than this fraction of its vertices projecting inside the image is lost.
+    part whose projected box keeps less than this fraction inside the image is lost.
 
     Flow: up to ``max_points`` points per part; refreshed from the current pose on keyframes, every
     ``refresh_every`` frames and when fewer than ``refresh_below`` of them survive. A flow measurement

@@ -85,10 +85,8 @@ def box_iou(a: Box, b: Box) -> float:
 
 def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray,
                   size: tuple[int, int]) -> tuple[Box | None, float]:
-    """(box of the projected vertices clipped to the image (W, H), fraction of the vertices in front of the
-    camera that project inside the image). (None, 0) when the part is behind the camera or entirely
-    outside. The fraction counts the part, not its box: a shaft crossing a corner of the image
-    diagonally with half its length inside has half its vertices inside but only a quarter of its box."""
+    """(box of the projected vertices clipped to the image (W, H), fraction of the unclipped box area
+    inside the image). (None, 0) when the part is behind the camera or entirely outside."""
     uv, z = project(K, R, t, vertices)
     front = z > 1e-3
     if front.sum() < 3:
@@ -97,11 +95,11 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
     x0, y0 = uv.min(0)
     x1, y1 = uv.max(0) + 1.0  # pixel-edge box around pixel centres
     W, H = size
+    area = (x1 - x0) * (y1 - y0)
     cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, float(W)), min(y1, float(H))
-    if cx1 <= cx0 or cy1 <= cy0:
+    if cx1 <= cx0 or cy1 <= cy0 or area <= 0:
         return None, 0.0
-    inside = (uv[:, 0] > -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < H - 0.5)
-    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float(inside.sum() / len(vertices))
+    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
 
 
 class _Track:
