@@ -103,6 +103,14 @@ def _crop_seed(seed: int, crop: _Crop) -> int:
     return int(seed) * 1_000_003 + zlib.crc32(key)
 
 
+def check_seeds(seeds: Sequence[int]) -> list[int]:
+    """``seeds`` as a list of ints; ValueError unless they are distinct numbers >= 0 (at least one)."""
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds must be distinct numbers >= 0, got {seeds}")
+    return seeds
+
+
 class PoseEstimator:
     """``PoseEstimator(model_or_checkpoint, preset="accurate" | "fast" | Preset, device=None)``.
 
@@ -225,9 +233,7 @@ class PoseEstimator:
         each equal to what ``estimate_batch`` with that seed returns. For measuring how much a figure owes
         to the solver's random draws at the cost of one forward. The ``forward`` and ``crop`` timings are
         reported in every seed's poses."""
-        seeds = [int(s) for s in seeds]
-        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-            raise ValueError(f"seeds must be distinct numbers >= 0, got {seeds}")
+        seeds = check_seeds(seeds)
         crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
         if not crops:
             return [[[] for _ in images] for _ in seeds]

@@ -194,10 +194,9 @@ def evaluate_seeds(checkpoint, data_dir, seeds: Sequence[int], **kwargs) -> list
     ``seeds[k]``, except for the timings (each seed's per-image time is its poses' stage timings, the
     shared forward counted in each). On ~100 images ADD-10 moves by a few points with the seed, so compare
     models on the mean over seeds (:func:`seed_table`). ``kwargs``: as :func:`evaluate`."""
-    seeds = [int(x) for x in seeds]
-    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise ValueError(f"seeds must be distinct numbers >= 0, got {seeds}")
-    return _evaluate(checkpoint, data_dir, seeds=seeds, **kwargs)
+    from surftrack.pose.estimator import check_seeds
+
+    return _evaluate(checkpoint, data_dir, seeds=check_seeds(seeds), **kwargs)
 
 
 def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_images: int | None = None,
@@ -265,7 +264,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
                          "diameter_bop_mm": diameter_max_pairwise(v), "diameter_surgripe_mm": diameter_bbox_diagonal(v)}
 
     shared = seeds is not None
-    seeds = [int(x) for x in seeds] if shared else [est.preset.seed]
+    seeds = list(seeds) if shared else [est.preset.seed]
     records: dict[int, list[dict]] = {sd: [] for sd in seeds}
     image_s: dict[int, list[float]] = {sd: [] for sd in seeds}
     load_s = 0.0
