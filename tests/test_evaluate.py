@@ -215,6 +215,7 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
         (["--model", str(ckpt), "--data", str(root), "--max-images", "0"], "--max-images"),
         (["--model", str(ckpt), "--data", str(root), "--seed", "-1"], "--seed"),
         (["--model", str(ckpt), "--data", str(root), "--seed", "1", "1"], "--seed takes distinct"),
+        (["--model", str(ckpt), "--data", str(root), "--views", "10"], "--views must be between 1 and 9"),
     ]
     for args, msg in cases:
         assert main(["eval", *args, "--out", str(tmp_path / "e.json"), "--quiet"]) == 2
@@ -225,7 +226,7 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
                  "--max-images", "1", "--seed", "5", "--out", str(out), "--device", "cpu", "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "| **Avg** |" in printed and str(out.with_suffix(".bop.csv")) in printed and "(seed 5)" in printed
-    assert json.loads(out.read_text())["seed"] == 5
+    assert json.loads(out.read_text())["seed"] == 5 and json.loads(out.read_text())["views"] == 1
     assert all(p.is_file() for p in (out, out.with_suffix(".md"), out.with_suffix(".png")))
     # several seeds: one set of outputs each and a table of ADD-10 per seed with the mean
     many = tmp_path / "many" / "e.json"
@@ -236,6 +237,20 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
     for s in (0, 3):
         assert json.loads((many.parent / f"e.seed{s}.json").read_text())["seed"] == s
     assert not many.exists() and (many.parent / "e.seeds.md").read_text() in printed
+    # crop views
+    views = tmp_path / "views" / "e.json"
+    assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
+                 "--max-images", "1", "--views", "2", "--out", str(views), "--device", "cpu", "--quiet"]) == 0
+    assert "2 crop views per box" in capsys.readouterr().out
+    assert json.loads(views.read_text())["views"] == 2
+    assert {i["timings_ms"]["total"] > 0 for i in json.loads(views.read_text())["instances"]} == {True}
+
+
+def test_cli_preset_names_are_the_presets():
+    from surftrack.cli import PRESET_NAMES
+    from surftrack.pose.preset import PRESETS
+
+    assert sorted(PRESET_NAMES) == sorted(PRESETS)
 
 
 def test_seed_table_averages_the_seeds():

@@ -12,6 +12,7 @@ from surftrack.model.config import ModelCfg
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
 from surftrack.pose import PRESETS, PoseEstimator, p3p, p4p, solve_field, solve_quartic
 from surftrack.pose.synthetic import rendered_problem
+from surftrack.pose.views import merge_views, view_offsets
 
 K_LND = np.array([[818.05, 0.0, 476.31], [0.0, 816.0, 298.18], [0.0, 0.0, 1.0]])  # SurgRIPE LND, 960x540
 
@@ -158,6 +159,48 @@ def test_tiny_model_end_to_end(tiny_model, preset):
     for a, b in zip(out, later):
         assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
     assert est.estimate(img, {}, K_LND) == []
+
+
+def test_merge_views_averages_the_modal_rotation():
+    rng = np.random.default_rng(3)
+    R0, t0 = Rotation.random(random_state=4).as_matrix(), np.array([5.0, -3.0, 60.0])
+    near = [Rotation.from_rotvec(np.radians(3) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ R0 for _ in range(4)]
+    flipped = Rotation.from_rotvec([np.pi, 0.0, 0.0]).as_matrix() @ R0
+    Rs = [near[0], flipped, *near[1:]]
+    ts = [t0 + rng.normal(size=3) for _ in range(5)]
+    scores = [0.2, 0.9, 0.3, 0.1, 0.4]  # the flipped view scores best, but no other view agrees with it
+    R, t, score, ref, members = merge_views(Rs, ts, scores, 15.0)
+    assert list(members) == [0, 2, 3, 4] and ref == 4  # all four agree: the best score among them
+    assert np.allclose(t, np.mean([ts[i] for i in members], axis=0)) and score == pytest.approx(0.25)
+    assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+    assert rotation_angle_deg(R, R0) < 3.0
+    # Two groups of equal support: the higher score decides
+    _, t2, _, ref2, members2 = merge_views([R0, R0, flipped, flipped], ts[:4], [0.1, 0.2, 0.5, 0.3], 15.0)
+    assert ref2 == 2 and list(members2) == [2, 3] and np.allclose(t2, (ts[2] + ts[3]) / 2)
+    assert view_offsets(1, 0.06) == [(0.0, 0.0)] and len(view_offsets(9, 0.1)) == 9
+    assert view_offsets(3, 0.05)[1:] == [(0.05, 0.05), (-0.05, -0.05)]
+    with pytest.raises(ValueError, match="views"):
+        view_offsets(10, 0.06)
+    with pytest.raises(ValueError, match="views"):
+        PRESETS["fast"].replace(views=0)
+
+
+def test_estimator_merges_crop_views(tiny_model):
+    img = np.random.default_rng(2).integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    one = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64).estimate(img, BOXES, K_LND)
+    est = PoseEstimator(tiny_model, PRESETS["fast"].replace(views=3), device="cpu", crop_size=64)
+    out = est.estimate(img, BOXES, K_LND)
+    assert [p.obj_id for p in out] == [1, 2, 3]
+    for a, p in zip(one, out):
+        assert p.counts["views"] == 3 and 1 <= p.counts["views_merged"] <= 3
+        assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-6) and np.all(np.isfinite(p.t)) and p.ok
+        assert p.crop_box == a.crop_box  # the unshifted view's crop
+        assert p.timings["forward"] >= a.timings["forward"] and p.timings["total"] > a.timings["total"]
+    # the same poses whatever else is in the batch
+    later = est.estimate_batch([img[::-1].copy(), img], [[(2, (10.0, 10.0, 50.0, 40.0))], BOXES], [K_LND, K_LND])
+    assert [len(f) for f in later] == [1, 3]
+    for a, b in zip(out, later[1]):
+        assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t) and a.counts == b.counts
 
 
 def test_estimator_from_checkpoint(tiny_model, tmp_path):

@@ -4,7 +4,9 @@ Crops are made as in training (:mod:`surftrack.data.dataset`): a square box arou
 side = the model's ``data.scale`` x the box's longer side, no rotation, warped bilinearly to the model's
 crop size. All crops of all frames go through the network together (in batches of ``max_batch``); the
 rest runs per crop: correspondence field, hypotheses, scoring, refinement
-(:mod:`surftrack.pose.solver`). Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
+(:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times, the crop
+centre shifted by ``view_shift`` of its side, and the views' poses merged (:mod:`surftrack.pose.views`).
+Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
 keeps the camera frame), t in mm.
 
 Boxes are pixel-EDGE boxes ``(x, y, w, h)`` as in ``det.json`` (:mod:`surftrack.synth.detections`): the
@@ -14,6 +16,7 @@ over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`box_from_bo
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import zlib
 from collections.abc import Mapping, Sequence
@@ -32,6 +35,7 @@ from surftrack.pose.correspondence import build_field, grid_camera, pool_to_grid
 from surftrack.pose.preset import Preset, get_preset
 from surftrack.pose.solver import StageTimer, solve_field
 from surftrack.pose.surface import bank_is_cached, part_bank
+from surftrack.pose.views import merge_views, view_offsets
 
 Box = tuple[float, float, float, float]
 STAGES = ("crop", "forward", "correspondence", "hypotheses", "scoring", "refinement")
@@ -46,7 +50,9 @@ class PartPose:
     a placeholder on the box's ray). ``timings``: ms per stage (``forward`` and ``crop`` are this part's
     share of the batch; ``keys`` only on the first use of a part, when its surface keys are computed and
     cached), ``total`` their sum. ``crop_box`` (x0, y0, x1, y1) pixel edges and ``crop_K`` the
-    crop's intrinsics."""
+    crop's intrinsics (of the unshifted view when the preset has several). With several views, ``timings``
+    add up all views, ``score`` and ``n_inliers`` are the merged views' means, and ``counts`` are the
+    reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged)."""
 
     obj_id: int
     part: str
@@ -93,6 +99,7 @@ class _Crop:
     K_crop: np.ndarray
     pixels: np.ndarray
     prior: tuple[np.ndarray, np.ndarray] | None = None
+    box_index: int = 0  # the box's place in its image's list (the views of one box share it)
 
 
 def _crop_seed(seed: int, crop: _Crop) -> int:
@@ -249,6 +256,7 @@ class PoseEstimator:
         if priors is not None and len(priors) != len(images):
             raise ValueError(f"need one prior mapping (or None) per image, got {len(priors)} for {len(images)}")
         S = self.crop_size
+        offsets = view_offsets(self.preset.views, self.preset.view_shift)
         crops: list[_Crop] = []
         t0 = time.perf_counter()
         for i, (img, bx, K) in enumerate(zip(images, boxes_per_image, Ks)):
@@ -257,11 +265,14 @@ class PoseEstimator:
             cam = self._camera(K, img.shape[:2], where)
             pri = priors[i] if priors is not None else None
             for j, (obj_id, box) in enumerate(self._boxes(bx, img.shape[:2], where)):
-                cbox = square_crop_box(box, self.box_scale)
-                M, ccam = crop_affine(cam, cbox, (S, S))
                 prior = None if pri is None else (pri.get(obj_id) if isinstance(pri, Mapping) else pri[j])
-                crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
-                                   warp_image(img, M, S), prior))
+                x0, y0, x1, y1 = square_crop_box(box, self.box_scale)
+                for dx, dy in offsets:
+                    side = x1 - x0
+                    cbox = (x0 + dx * side, y0 + dy * side, x1 + dx * side, y1 + dy * side)
+                    M, ccam = crop_affine(cam, cbox, (S, S))
+                    crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
+                                       warp_image(img, M, S), prior, j))
         return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
 
     def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
@@ -273,12 +284,32 @@ class PoseEstimator:
         try:
             if limit:
                 torch.set_num_threads(self.solver_threads)
+            views: list[PartPose] = []
             for k, c in enumerate(crops):
-                results[c.image_index].append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms, seed))
+                views.append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms, seed))
+                last = k + 1 == len(crops) or (crops[k + 1].image_index, crops[k + 1].box_index) != \
+                    (c.image_index, c.box_index)
+                if last:
+                    results[c.image_index].append(views[0] if len(views) == 1 else self._merge(views))
+                    views = []
         finally:
             if limit:
                 torch.set_num_threads(threads)
         return results
+
+    def _merge(self, views: list[PartPose]) -> PartPose:
+        """One box's pose from its views' (:func:`surftrack.pose.views.merge_views` over the solved ones)."""
+        ok = [v for v in views if v.ok]
+        timings = {s: sum(v.timings.get(s, 0.0) for v in views) for s in views[0].timings}
+        counts = {"views": len(views), "views_merged": 0}
+        if not ok:
+            return dataclasses.replace(views[0], timings=timings, counts={**views[0].counts, **counts})
+        R, t, score, ref, members = merge_views([v.R for v in ok], [v.t for v in ok], [v.score for v in ok],
+                                                self.preset.view_radius_deg)
+        counts["views_merged"] = len(members)
+        return dataclasses.replace(views[0], R=R, t=t, score=score, ok=True, timings=timings,
+                                   n_inliers=int(round(np.mean([ok[m].n_inliers for m in members]))),
+                                   counts={**ok[ref].counts, **counts})
 
     def _forward(self, crops: list[_Crop]) -> tuple[torch.Tensor, torch.Tensor, float]:
         """Pooled mask logits (B, g, g) and queries (B, E, g, g), and the forward ms per crop."""

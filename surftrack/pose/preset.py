@@ -1,4 +1,6 @@
-"""Settings of the pose estimator, with two presets: ``accurate`` (close to SurfEmb's inference) and ``fast``.
+"""Settings of the pose estimator, with three presets: ``accurate`` (close to SurfEmb's inference), ``fast``
+(fewer hypotheses and samples on a coarser grid) and ``thorough`` (``accurate`` on five crop views per box,
+:mod:`surftrack.pose.views`: about five times its time, for offline annotation and evaluation).
 
 Pixel quantities are in pixels of the correspondence GRID: the network's crop output average-pooled by
 ``stride`` (grid pixel i is centred on crop pixel ``stride * i``). Scores are per-pixel averages of log
@@ -51,6 +53,10 @@ class Preset:
     max_step_radius: float = 0.5     # ... and move it at most this many part radii
     score_tol: float = 0.05          # the final PnP is kept unless it lowers the (per-pixel) score by more
     min_inliers: int = 6
+    # test-time crop views (:mod:`surftrack.pose.views`)
+    views: int = 1                   # crops per box, each solved on its own, their poses merged
+    view_shift: float = 0.06         # crop-centre shift of the shifted views, x the crop's side
+    view_radius_deg: float = 15.0    # views within this rotation of the modal one are averaged
     # network
     amp: bool = True                 # CUDA only: fp16 autocast for the image network
     max_batch: int = 16              # crops per network forward
@@ -61,6 +67,9 @@ class Preset:
             raise ValueError(f"invalid preset {self}")
         if not 0.0 < self.mask_threshold < 1.0 or self.alpha <= 0:
             raise ValueError(f"preset {self.name}: need 0 < mask_threshold < 1 and alpha > 0")
+        if not 1 <= self.views <= 9 or not 0 <= self.view_shift <= 0.5 or not self.view_radius_deg > 0:
+            raise ValueError(f"preset {self.name}: need 1 <= views <= 9, 0 <= view_shift <= 0.5 and "
+                             f"view_radius_deg > 0")
         if not 0 < self.depth_range[0] < self.depth_range[1]:
             raise ValueError(f"preset {self.name}: invalid depth_range {self.depth_range}")
 
@@ -72,6 +81,7 @@ PRESETS: dict[str, Preset] = {
     "accurate": Preset(),
     "fast": Preset(name="fast", stride=4, n_samples=5000, n_hypotheses=1500, max_scored=200, max_active=1000,
                    rescore_top=20, refine_rounds=1, final_rounds=2, final_lm_iters=20),
+    "thorough": Preset(name="thorough", views=5),
 }
 
 

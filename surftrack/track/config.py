@@ -10,6 +10,7 @@ from pathlib import Path
 
 from surftrack.configio import build_dataclass, read_config_yaml
 from surftrack.pose.kinematic import KinematicConfig
+from surftrack.pose.preset import PRESETS
 from surftrack.track.kalman import KalmanConfig
 
 
@@ -80,8 +81,8 @@ class TrackConfig:
                 raise ValueError(f"{f.name} must be a string, got {v!r}")
             elif kind is bool and not isinstance(v, bool):
                 raise ValueError(f"{f.name} must be true or false, got {v!r}")
-        if self.preset not in ("fast", "accurate"):
-            raise ValueError(f"preset must be 'fast' or 'accurate', got {self.preset!r}")
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {', '.join(sorted(PRESETS))}, got {self.preset!r}")
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
         for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio"):
