@@ -3,7 +3,7 @@ estimation on a synthetic clip with ground truth.
 
     python pipelines/bench_track.py [--model CKPT] [--seconds 30] [--fps 30] [--parts wrist,shaft]
                                     [--clip DIR] [--device cpu|cuda] [--threads N]
-                                    [--keyframe-every N] [--no-kinematic]
+                                    [--keyframe-every N] [--no-kinematic] [--preset P] [--views N]
 
 Makes (or reuses, with --clip) a 640x512 synthetic clip of the Large Needle Driver crossed by a second tool
 (``surftrack synth-clip``), keeps the boxes of the chosen parts (default: two, wrist and shaft), then:
@@ -55,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, help="torch intra-op threads")
     ap.add_argument("--keyframe-every", type=int)
+    ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
+    ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
     ap.add_argument("--no-kinematic", action="store_true",
                     help="leave per-part poses as estimated (no instrument-level kinematic fit), in both runs")
     args = ap.parse_args(argv)
@@ -85,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         cfg = cfg.replace(keyframe_every=args.keyframe_every)
     if args.no_kinematic:
         cfg = cfg.replace(kinematic=False)
+    if args.preset:
+        cfg = cfg.replace(preset=args.preset)
+    if args.views:
+        cfg = cfg.replace(views=args.views)
     gt = ClipGroundTruth(clip / "gt.json")
 
     # 1. tracking
@@ -109,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # 2. per-frame estimation with the same boxes
     model, tcfg, _ = load_checkpoint(model_path, args.device)
-    est = PoseEstimator(model, cfg.preset, device=args.device, crop_size=tcfg.data.crop, box_scale=tcfg.data.scale)
+    est = PoseEstimator(model, cfg.estimator_preset(), device=args.device, crop_size=tcfg.data.crop, box_scale=tcfg.data.scale)
     K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
     det = json.loads(boxes.read_text())
     per_frame = {f["index"]: f["detections"] for f in det["frames"]}
@@ -142,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
 
     on_gpu = torch.device(args.device).type == "cuda"
     dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
-    print(f"\nmodel {model_path}, preset {cfg.preset}, keyframe every {cfg.keyframe_every} frames, "
+    print(f"\nmodel {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), keyframe every {cfg.keyframe_every} frames, "
           f"kinematic fit {'on' if cfg.kinematic else 'off'}, device {dev}")
     print(f"frames: {run['frames']}; tracking end to end (decode, tracker, MCAP) {run['fps']:.1f} frames/s, "
           f"the tracker alone {run['track_ms_per_frame']:.1f} ms/frame; per-frame estimation (decode, estimator) "

@@ -208,6 +208,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
         cfg = cfg.replace(keyframe_every=args.keyframe_every)
     if args.preset is not None:
         cfg = cfg.replace(preset=args.preset)
+    if args.views is not None:
+        if not 1 <= args.views <= 9:
+            raise CLIError(f"--views must be between 1 and 9, got {args.views}")
+        cfg = cfg.replace(views=args.views)
     if args.device == "cuda":
         import torch
 
@@ -343,6 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("-o", "--out", help="MCAP file (default: the video's name with .mcap; a folder for a folder)")
     tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
+    tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
+                    "preset's; 5 with the fast preset: about 2.5x the keyframe time, better poses)")
     tk.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
     tk.add_argument("--start", type=float, help="first second of video to track")

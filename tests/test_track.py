@@ -9,6 +9,7 @@ import pytest
 from mcap.reader import make_reader
 
 from surftrack.cli import main
+from surftrack.pose.preset import PRESETS
 from surftrack.synth.video import read_video_frames
 from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, projected_box
 from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
@@ -316,6 +317,19 @@ def test_kinematic_settings_are_checked():
             TrackConfig(kinematic_anchor_weight=bad)
         with pytest.raises(ValueError, match="kinematic_anchor_translation_weight"):
             TrackConfig(kinematic_anchor_translation_weight=bad)
+
+
+def test_keyframe_preset_and_views():
+    from surftrack.track import load_track_config
+
+    cfg = load_track_config()
+    assert cfg.views == 0 and cfg.estimator_preset() == PRESETS[cfg.preset]
+    assert cfg.replace(views=3).estimator_preset() == PRESETS[cfg.preset].replace(views=3)
+    assert cfg.replace(preset="thorough").estimator_preset().views == 5
+    with pytest.raises(ValueError, match="views must be 0"):
+        TrackConfig(views=10)
+    with pytest.raises(ValueError, match="preset must be one of accurate, fast, thorough"):
+        TrackConfig(preset="slow")
 
 
 def test_tracking_settings_are_checked_with_the_file_named(tmp_path):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from surftrack.configio import build_dataclass, read_config_yaml
 from surftrack.pose.kinematic import KinematicConfig
-from surftrack.pose.preset import PRESETS
+from surftrack.pose.preset import PRESETS, Preset
 from surftrack.track.kalman import KalmanConfig
 
 
@@ -20,7 +20,8 @@ class TrackConfigError(ValueError):
 
 @dataclass(frozen=True)
 class TrackConfig:
-    """``preset``: the estimator preset for keyframes. ``keyframe_every``: frames between estimator runs
+    """``preset``: the estimator preset for keyframes; ``views``: crop views per box there (1-9,
+    :mod:`surftrack.pose.views`; 0 keeps the preset's). ``keyframe_every``: frames between estimator runs
     on a tracked part (the tracked pose is offered as a prior, so a keyframe replaces it only when the
     estimator finds a pose that explains the image better). ``min_box_score``: detections below are
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
@@ -45,6 +46,7 @@ class TrackConfig:
     """
 
     preset: str = "fast"
+    views: int = 0
     keyframe_every: int = 1
     min_box_score: float = 0.3
     min_iou: float = 0.2
@@ -83,6 +85,8 @@ class TrackConfig:
                 raise ValueError(f"{f.name} must be true or false, got {v!r}")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {', '.join(sorted(PRESETS))}, got {self.preset!r}")
+        if not 0 <= self.views <= 9:
+            raise ValueError(f"views must be 0 (the preset's) or 1-9, got {self.views}")
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
         for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio"):
@@ -116,6 +120,10 @@ class TrackConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    def estimator_preset(self) -> Preset:
+        """The keyframes' estimator preset: ``preset`` with ``views`` where given."""
+        return PRESETS[self.preset] if self.views == 0 else PRESETS[self.preset].replace(views=self.views)
 
     def replace(self, **changes) -> TrackConfig:
         return dataclasses.replace(self, **changes)
