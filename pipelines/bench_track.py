@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # 2. per-frame estimation with the same boxes
     model, tcfg, _ = load_checkpoint(model_path, args.device)
-    est = PoseEstimator(model, cfg.estimator_preset(), device=args.device, crop_size=tcfg.data.crop, box_scale=tcfg.data.scale)
+    est = PoseEstimator(model, cfg.estimator_preset(), device=args.device, crop_size=tcfg.data.crop,
+                        box_scale=tcfg.data.scale)
     K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
     det = json.loads(boxes.read_text())
     per_frame = {f["index"]: f["detections"] for f in det["frames"]}
@@ -148,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
 
     on_gpu = torch.device(args.device).type == "cuda"
     dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
-    print(f"\nmodel {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), keyframe every {cfg.keyframe_every} frames, "
+    print(f"\nmodel {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), "
+          f"keyframe every {cfg.keyframe_every} frames, "
           f"kinematic fit {'on' if cfg.kinematic else 'off'}, device {dev}")
     print(f"frames: {run['frames']}; tracking end to end (decode, tracker, MCAP) {run['fps']:.1f} frames/s, "
           f"the tracker alone {run['track_ms_per_frame']:.1f} ms/frame; per-frame estimation (decode, estimator) "

@@ -224,8 +224,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     specs, notes = match_parts(doc, model, str(boxes))
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
     _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)
-    estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device, crop_size=train_cfg.data.crop,
-                              box_scale=train_cfg.data.scale)
+    estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
+                              crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
     tracker = Tracker(estimator, cam.K, size, specs, opts.config)
     undistort = cam.undistorter()
     per_frame = _frame_boxes(doc, cam)

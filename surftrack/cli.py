@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", default="eval.json", help="results JSON; .md, .bop.csv and .png go next to it "
                     "(default: eval.json)")
     ev.add_argument("--preset", default="accurate", choices=PRESET_NAMES, help="estimator preset (default: "
-                    "accurate; thorough: accurate on five crop views per box, about 5x its time)")
+                    "accurate; thorough: accurate on five crop views per box, about 4x its time)")
     ev.add_argument("--views", type=int, metavar="N", help="crop views per box, 1-9 (default: the preset's)")
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
     ev.add_argument("--seed", type=int, nargs="+", default=[0], metavar="N",
@@ -348,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
-                    "preset's; 5 with the fast preset: about 2.5x the keyframe time, better poses)")
+                    "preset's; 5: about 4x the keyframe time, better poses)")
     tk.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
     tk.add_argument("--start", type=float, help="first second of video to track")

@@ -1,6 +1,6 @@
 """Settings of the pose estimator, with three presets: ``accurate`` (close to SurfEmb's inference), ``fast``
 (fewer hypotheses and samples on a coarser grid) and ``thorough`` (``accurate`` on five crop views per box,
-:mod:`surftrack.pose.views`: about five times its time, for offline annotation and evaluation).
+:mod:`surftrack.pose.views`: about four times its time, for offline annotation and evaluation).
 
 Pixel quantities are in pixels of the correspondence GRID: the network's crop output average-pooled by
 ``stride`` (grid pixel i is centred on crop pixel ``stride * i``). Scores are per-pixel averages of log

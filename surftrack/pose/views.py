@@ -36,16 +36,17 @@ def view_offsets(views: int, shift: float) -> list[tuple[float, float]]:
 def mean_rotation(Rs: np.ndarray) -> np.ndarray:
     """Chordal L2 mean of rotations (n, 3, 3): the rotation nearest their arithmetic mean."""
     U, _, Vt = np.linalg.svd(np.sum(np.asarray(Rs, np.float64), axis=0))
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+    d = 1.0 if np.linalg.det(U @ Vt) >= 0 else -1.0
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
 
 
 def merge_views(Rs: Sequence[np.ndarray], ts: Sequence[np.ndarray], scores: Sequence[float],
                 radius_deg: float) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray]:
     """One pose from the poses of one box's views: ``(R, t, score, reference, members)``.
 
-    The reference is the view with the most views within ``radius_deg`` of its rotation (itself
-    included; ties go to the higher score); ``members`` (indices) are the views within ``radius_deg`` of
-    it (indices into the views). R is their chordal mean rotation, t their mean translation, score their mean score."""
+    ``reference`` is the index of the view with the most views within ``radius_deg`` of its rotation
+    (itself included; ties go to the higher score), ``members`` the indices of the views within
+    ``radius_deg`` of it. R is their chordal mean rotation, t their mean translation, score their mean."""
     Rs = np.asarray(Rs, np.float64).reshape(-1, 3, 3)
     ts = np.asarray(ts, np.float64).reshape(-1, 3)
     scores = np.asarray(scores, np.float64).reshape(-1)
