@@ -155,6 +155,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _checked_views(views: int) -> int:
+    """``--views``, or a CLIError when it is out of range."""
+    if not 1 <= views <= 9:
+        raise CLIError(f"--views must be between 1 and 9, got {views}")
+    return views
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from surftrack.pose.evaluate import evaluate, evaluate_seeds, markdown_table, seed_table, write_eval_outputs
     from surftrack.pose.preset import get_preset
@@ -168,9 +175,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     out = Path(args.out)
     preset = get_preset(args.preset)
     if args.views is not None:
-        if not 1 <= args.views <= 9:
-            raise CLIError(f"--views must be between 1 and 9, got {args.views}")
-        preset = preset.replace(views=args.views)
+        preset = preset.replace(views=_checked_views(args.views))
     kwargs = dict(split=args.split, max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
                   device=args.device, progress=not args.quiet, kinematic=args.kinematic)
     with _use_instruments(args.instrument):
@@ -209,9 +214,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     if args.preset is not None:
         cfg = cfg.replace(preset=args.preset)
     if args.views is not None:
-        if not 1 <= args.views <= 9:
-            raise CLIError(f"--views must be between 1 and 9, got {args.views}")
-        cfg = cfg.replace(views=args.views)
+        cfg = cfg.replace(views=_checked_views(args.views))
     if args.device == "cuda":
         import torch
 

@@ -267,8 +267,8 @@ class PoseEstimator:
             for j, (obj_id, box) in enumerate(self._boxes(bx, img.shape[:2], where)):
                 prior = None if pri is None else (pri.get(obj_id) if isinstance(pri, Mapping) else pri[j])
                 x0, y0, x1, y1 = square_crop_box(box, self.box_scale)
+                side = x1 - x0
                 for dx, dy in offsets:
-                    side = x1 - x0
                     cbox = (x0 + dx * side, y0 + dy * side, x1 + dx * side, y1 + dy * side)
                     M, ccam = crop_affine(cam, cbox, (S, S))
                     crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
