@@ -99,7 +99,6 @@ class _Crop:
     K_crop: np.ndarray
     pixels: np.ndarray
     prior: tuple[np.ndarray, np.ndarray] | None = None
-    box_index: int = 0  # the box's place in its image's list (the views of one box share it)
 
 
 def _crop_seed(seed: int, crop: _Crop) -> int:
@@ -272,7 +271,7 @@ class PoseEstimator:
                     cbox = (x0 + dx * side, y0 + dy * side, x1 + dx * side, y1 + dy * side)
                     M, ccam = crop_affine(cam, cbox, (S, S))
                     crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
-                                       warp_image(img, M, S), prior, j))
+                                       warp_image(img, M, S), prior))
         return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
 
     def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
@@ -284,14 +283,10 @@ class PoseEstimator:
         try:
             if limit:
                 torch.set_num_threads(self.solver_threads)
-            views: list[PartPose] = []
-            for k, c in enumerate(crops):
-                views.append(self._solve(c, masks[k], queries[k], crop_ms, fwd_ms, seed))
-                last = k + 1 == len(crops) or (crops[k + 1].image_index, crops[k + 1].box_index) != \
-                    (c.image_index, c.box_index)
-                if last:
-                    results[c.image_index].append(views[0] if len(views) == 1 else self._merge(views))
-                    views = []
+            n = self.preset.views  # each box's views are consecutive crops (see _crops)
+            for s in range(0, len(crops), n):
+                views = [self._solve(crops[k], masks[k], queries[k], crop_ms, fwd_ms, seed) for k in range(s, s + n)]
+                results[crops[s].image_index].append(views[0] if n == 1 else self._merge(views))
         finally:
             if limit:
                 torch.set_num_threads(threads)
