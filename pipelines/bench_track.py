@@ -64,12 +64,12 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
 
     from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.io.video import read_video_frames
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.pose import PoseEstimator
     from surftrack.pose.kinematic import apply_kinematics
     from surftrack.synth.clip import ClipConfig, make_clip
-    from surftrack.synth.video import read_video_frames
     from surftrack.track import PartState, load_track_config
     from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
 

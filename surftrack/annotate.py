@@ -25,7 +25,7 @@ import numpy as np
 
 from surftrack import __version__
 from surftrack.instruments import JOINT_NAMES
-from surftrack.synth.video import read_video_frames
+from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 

@@ -15,10 +15,10 @@ import pytest
 
 from surftrack.geometry import PinholeCamera
 from surftrack.instruments import JointState, load_instrument, rcm_base_pose
+from surftrack.io.video import read_video_frames
 from surftrack.render import Renderer, add_instrument
 from surftrack.synth.clip import ClipConfig, make_clip
 from surftrack.synth.detections import load_detections
-from surftrack.synth.video import read_video_frames
 
 W, H, FPS = 320, 256, 15.0
 NOISELESS = {"center_std": 0.0, "scale_std": 0.0, "miss_prob": 0.0, "false_prob": 0.0,

@@ -20,7 +20,7 @@ from surftrack.io import (
 )
 from surftrack.io import overlay
 from surftrack.io.overlay import BOX_COLOR, STATUS_COLORS
-from surftrack.synth.video import read_video_frames
+from surftrack.io.video import read_video_frames
 
 from .raycast import edge_pixels, raycast
 

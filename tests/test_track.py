@@ -9,8 +9,8 @@ import pytest
 from mcap.reader import make_reader
 
 from surftrack.cli import main
+from surftrack.io.video import read_video_frames
 from surftrack.pose.preset import PRESETS
-from surftrack.synth.video import read_video_frames
 from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, projected_box
 from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
 from surftrack.track.flow import SurfaceSamples, pnp_measurement, pose_distance, track_points, visible_points

@@ -237,7 +237,7 @@ def test_interrupted_run_leaves_complete_outputs(clip, tiny_ckpt, tmp_path):
 
     from surftrack.annotate import AnnotateOptions, annotate_video
     from surftrack.io.tum import read_tum
-    from surftrack.synth.video import read_video_frames
+    from surftrack.io.video import read_video_frames
 
     def stop(index, time_s, states):
         if index == 4:

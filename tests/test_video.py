@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from surftrack.synth.video import VideoWriter, read_video_frames
+from surftrack.io.video import VideoWriter, read_video_frames
 
 W, H = 64, 48
 

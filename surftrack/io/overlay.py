@@ -7,7 +7,7 @@
   status, the part's axes (x red, y green, z blue), its detection box and a label, plus a corner legend
   with the time and every part's status.
 * :class:`OverlayWriter` draws each frame and encodes it to H.264 through
-  :class:`surftrack.synth.video.VideoWriter`.
+  :class:`surftrack.io.video.VideoWriter`.
 
 Conventions: OpenCV camera axes and pixel coordinates (pixel centres at integers), millimetres, poses
 model-to-camera (``p_cam = R @ p_model + t``), frames uint8 RGB (H, W, 3). Geometry nearer the camera than
@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surftrack.synth.video import VideoWriter
+from surftrack.io.video import VideoWriter
 
 __all__ = [
     "AXIS_COLORS", "NEAR_MM", "OverlayWriter", "PartOverlay", "STATUSES", "STATUS_COLORS", "draw_overlay",
@@ -559,7 +559,7 @@ class OverlayWriter:
     """Context manager writing tracking overlays to an H.264 video (MP4 by the file name).
 
     ``OverlayWriter(path, fps, width, height, K)``: frames are uint8 RGB (height, width, 3) seen through
-    intrinsics ``K``; ``fps`` is the nominal rate (see :class:`~surftrack.synth.video.VideoWriter`; even
+    intrinsics ``K``; ``fps`` is the nominal rate (see :class:`~surftrack.io.video.VideoWriter`; even
     width and height are required). An unwritable path raises ``OSError`` naming it, a name without a
     video suffix ``ValueError``. :meth:`close` (also run on leaving the ``with`` block, exception or not)
     finishes the file, so the frames written so far stay playable; when no frame was written no file is

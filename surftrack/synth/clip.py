@@ -42,6 +42,7 @@ from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
 from surftrack.geometry import PinholeCamera, so3_exp, transform_points
 from surftrack.instruments import Instrument, JointState, assign_obj_ids, load_instrument, rcm_base_pose
+from surftrack.io.video import VideoWriter  # a leaf module: the one import of a later stage (see surftrack.io)
 from surftrack.render import Renderer, add_instrument
 from surftrack.synth.bop_writer import bbox_xywh
 from surftrack.synth.checks import PartCollision, TissueCollision, in_view
@@ -50,7 +51,6 @@ from surftrack.synth.detections import DetectionNoise, detections_document, simu
 from surftrack.synth.effects import CameraEffects, apply_effects
 from surftrack.synth.sampling import InstrumentSample, sample_instrument, sample_lights, sample_tissue_pose, uniform
 from surftrack.synth.tissue import Tissue, procedural_tissue
-from surftrack.synth.video import VideoWriter
 
 GT_FORMAT = "surftrack-clip-gt"
 GT_VERSION = 1

@@ -1,4 +1,8 @@
-"""Writing and reading short video clips with PyAV, keeping each frame's presentation time.
+"""Writing and reading videos with PyAV, keeping each frame's presentation time: the videos a user
+tracks, the overlay videos, and the synthetic clips.
+
+A leaf module: it imports nothing from surftrack, so that :mod:`surftrack.synth.clip`, an earlier stage,
+can write its clips with it (the one exception to the stage order; see :mod:`surftrack.io`).
 
 :class:`VideoWriter` encodes uint8 RGB frames to H.264 in MP4 (by default) with a timestamp per frame:
 the one given to :meth:`VideoWriter.write`, so variable frame rates survive, else ``i / fps``.
