@@ -43,6 +43,8 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 from scipy.spatial.transform import Rotation
 
+from surftrack.jsonsafe import json_safe
+
 __all__ = ["TrackWriter", "SCHEMAS", "time_to_ns"]
 
 # --------------------------------------------------------------------------------------------- schemas
@@ -370,7 +372,8 @@ class TrackWriter:
         self._write(f"/parts/{name}/status", "surftrack.PartStatus", ns, {
             "timestamp": _stamp(ns), "part": name, "status": str(status),
             "confidence": _finite(float(confidence), "confidence"),
-            "extra": _nan_to_null(json.loads(json.dumps(dict(extra or {}), default=_jsonable)))})
+            # through JSON first, so that arrays and other objects in ``extra`` become JSON values
+            "extra": json_safe(json.loads(json.dumps(dict(extra or {}), default=_jsonable)))})
 
     def joint_states(self, time_s: float, instrument_name: str, names: Sequence[str],
                      positions: Sequence[float | None],
@@ -503,18 +506,6 @@ def _finite(v: float, what: str) -> float:
     if not math.isfinite(v):
         raise ValueError(f"{what} must be finite, got {v!r}")
     return v
-
-
-def _nan_to_null(o):
-    """``o`` (parsed JSON) with NaN and infinities as None: JSON has no such numbers, and strict readers
-    (Foxglove's) reject a file that writes them."""
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: _nan_to_null(v) for k, v in o.items()}
-    if isinstance(o, list):
-        return [_nan_to_null(v) for v in o]
-    return o
 
 
 def _jsonable(o):

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
+from surftrack.jsonsafe import json_safe
 from surftrack.pose.kinematic import (
     KinematicConfig,
     apply_kinematics,
@@ -441,18 +442,6 @@ def seed_table(results: Sequence[Mapping], diameter: str = "surgripe") -> str:
     return "\n".join(lines) + "\n"
 
 
-def _json_safe(x):
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, Mapping):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.generic):
-        return _json_safe(x.item())
-    return x
-
-
 def write_bop_csv(result: Mapping, path: str | Path) -> Path:
     """BOP challenge results: ``scene_id,im_id,obj_id,score,R,t,time``; R 9 space-separated values
     (row-major), t in mm (3 values), time in seconds per image (the same for all estimates of an image)."""
@@ -503,7 +492,7 @@ def write_eval_outputs(result: Mapping, out_json: str | Path) -> dict[str, Path]
     paths = {"json": out, "markdown": out.with_suffix(".md"), "bop_csv": out.with_suffix(".bop.csv"),
              "plot": out.with_suffix(".png")}
     tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(result), indent=1))
+    tmp.write_text(json.dumps(json_safe(result), indent=1))
     tmp.replace(out)
     paths["markdown"].write_text(markdown_table(result))
     write_bop_csv(result, paths["bop_csv"])
