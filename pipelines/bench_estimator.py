@@ -35,8 +35,8 @@ import numpy as np
 import torch
 
 from surftrack.data.bop import BopDataset
-from surftrack.geometry import rotation_angle_deg
-from surftrack.pose import PoseEstimator, box_from_bop
+from surftrack.geometry import box_from_bop, rotation_angle_deg
+from surftrack.pose import PoseEstimator
 from surftrack.pose.estimator import STAGES
 
 

@@ -19,18 +19,24 @@ from surftrack.data import (
     MixedSampler,
     TargetRenderer,
     augment,
-    bop_box_edges,
     crop_box,
-    crop_with_rotation,
     denormalise_image,
     import_surgripe,
     mixed_dataset,
     mixed_indices,
-    pose_in_crop,
-    warp_image,
 )
 from surftrack.data.join import join_datasets
-from surftrack.geometry import PinholeCamera, rotation_about, se3, transform_points
+from surftrack.geometry import (
+    PinholeCamera,
+    box_from_bop,
+    crop_with_rotation,
+    pose_in_crop,
+    rotation_about,
+    se3,
+    transform_points,
+    warp_image,
+    xyxy_from_xywh,
+)
 from surftrack.render import Renderer, worker_context
 from surftrack.synth.bop_writer import bbox_xywh
 from surftrack.synth.config import load_synth_config
@@ -229,7 +235,7 @@ def test_bop_box_edges_and_crop_box_cover_the_mask_pixels_exactly():
     mask = np.zeros((60, 80), bool)
     mask[30:40, 10:20] = True  # pixels 10..19 x 30..39
     bb = bbox_xywh(mask)
-    assert bb == [10, 30, 9, 9] and bop_box_edges(bb) == (10, 30, 20, 40)
+    assert bb == [10, 30, 9, 9] and xyxy_from_xywh(box_from_bop(bb)) == (10, 30, 20, 40)
     assert crop_box(bb, scale=1.0) == (10, 30, 20, 40)
     cam = PinholeCamera(np.array([[50.0, 0, 39.5], [0, 50.0, 29.5], [0, 0, 1]]), 80, 60)
     M, _, _ = crop_with_rotation(cam, crop_box(bb, scale=1.0), 10)

@@ -10,10 +10,11 @@ import torch
 
 from surftrack.data import BopDataset
 from surftrack.eval import auc
+from surftrack.geometry import box_from_bop
 from surftrack.model.checkpoint import save_checkpoint
 from surftrack.model.config import TrainConfig
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
-from surftrack.pose.estimator import PartPose, PoseEstimator, box_from_bop
+from surftrack.pose.estimator import PartPose, PoseEstimator
 from surftrack.pose.evaluate import (evaluate, evaluate_seeds, group_stats, markdown_table, pose_errors, seed_table,
                                      summarize, write_eval_outputs)
 from surftrack.pose.preset import get_preset

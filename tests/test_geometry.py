@@ -1,11 +1,14 @@
+import cv2
 import numpy as np
 import pytest
 
 from surftrack.geometry import (
     PinholeCamera,
+    box_from_bop,
     crop_affine,
     interpolate_pose,
     matrix_from_quat_xyzw,
+    project_points,
     quat_xyzw_from_matrix,
     rotation_about,
     rotation_angle_deg,
@@ -14,12 +17,18 @@ from surftrack.geometry import (
     se3_exp,
     se3_inv,
     se3_log,
+    se3_split,
     slerp,
     so3_exp,
     so3_log,
+    square_crop_box,
     transform_points,
+    warp_image,
+    xywh_from_xyxy,
+    xyxy_from_xywh,
 )
 from surftrack.instruments import rcm_base_pose
+from surftrack.synth.bop_writer import bbox_xywh
 
 rng = np.random.default_rng(7)
 
@@ -141,3 +150,104 @@ def test_rcm_base_pose_passes_through_trocar():
     # Degenerate reference (shaft along camera z) still gives a valid frame.
     T2 = rcm_base_pose([0, 0, 0], [0, 0, 50])
     assert np.isclose(np.linalg.det(T2[:3, :3]), 1)
+
+
+# ------------------------------------------------------------------ conventions, pinned against OpenCV and 4x4 matrices
+def random_intrinsics(r: np.random.Generator) -> np.ndarray:
+    fx = r.uniform(200.0, 2000.0)
+    return np.array([[fx, 0.0, r.uniform(100.0, 700.0)], [0.0, fx * r.uniform(0.9, 1.1), r.uniform(100.0, 500.0)],
+                     [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_projection_matches_cv2_project_points(seed):
+    """Model points at a random pose through random intrinsics, no distortion: the same pixels as
+    cv2.projectPoints (which takes the model-to-camera rotation vector and translation)."""
+    r = np.random.default_rng(seed)
+    K = random_intrinsics(r)
+    R, t = so3_exp(r.normal(size=3)), np.r_[r.normal(scale=20.0, size=2), r.uniform(80.0, 300.0)]
+    X = r.normal(scale=15.0, size=(200, 3))
+    expect, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, np.zeros(5))
+    uv = project_points(K, transform_points(se3(R, t), X))
+    assert uv.shape == (200, 2)
+    np.testing.assert_allclose(uv, expect.reshape(-1, 2), rtol=0, atol=1e-8)
+    cam = PinholeCamera(K, 800, 600)
+    assert np.array_equal(cam.project(transform_points(se3(R, t), X)), uv)
+    # a skewed K (a rotated crop's camera) is the full product K @ X, divided by depth
+    Ks = K.copy()
+    Ks[0, 1] = r.uniform(-5.0, 5.0)
+    Xc = transform_points(se3(R, t), X)
+    uvw = Xc @ Ks.T
+    np.testing.assert_allclose(project_points(Ks, Xc), uvw[:, :2] / uvw[:, 2:3], rtol=0, atol=1e-8)
+    # any leading shape; the principal point is where the optical axis lands
+    assert project_points(K, X.reshape(10, 20, 3) + [0, 0, 100]).shape == (10, 20, 2)
+    assert np.allclose(project_points(K, np.array([0.0, 0.0, 5.0])), K[:2, 2])
+
+
+def test_projection_of_points_behind_the_camera_is_left_to_the_caller():
+    uv = project_points(np.eye(3), np.array([[1.0, 2.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, -2.0]]))
+    assert not np.isfinite(uv[:2]).any() and np.allclose(uv[2], [-0.5, -0.5])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_transform_points_is_the_homogeneous_product(seed):
+    """transform_points(T, x) == (T @ [x, 1])[:3] for a 4x4 pose T; composing poses composes transforms."""
+    r = np.random.default_rng(seed)
+    A, B = (se3(so3_exp(r.normal(size=3)), r.normal(scale=50.0, size=3)) for _ in range(2))
+    X = r.normal(scale=30.0, size=(50, 3))
+    homogeneous = np.c_[X, np.ones(len(X))] @ A.T
+    assert np.allclose(homogeneous[:, 3], 1.0)
+    np.testing.assert_allclose(transform_points(A, X), homogeneous[:, :3], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(transform_points(A @ B, X), transform_points(A, transform_points(B, X)),
+                               rtol=0, atol=1e-10)
+    # the rotation acts on the point, then the translation is added: x' = R x + t
+    R, t = se3_split(A)
+    np.testing.assert_allclose(transform_points(A, X), X @ R.T + t, rtol=0, atol=1e-12)
+
+
+def test_bop_box_covers_its_pixels_in_edge_coordinates():
+    """Pixel u covers the edge interval [u, u + 1]: a BOP box over pixel indices (w = xmax - xmin) is the
+    edge box (x, y, w + 1, h + 1), whose corners in OpenCV (pixel-centre) coordinates are x - 0.5 and
+    x + w + 0.5."""
+    mask = np.zeros((60, 80), bool)
+    mask[30:40, 10:20] = True  # columns 10..19, rows 30..39
+    bb = bbox_xywh(mask)
+    assert bb == [10, 30, 9, 9]
+    assert box_from_bop(bb) == (10.0, 30.0, 10.0, 10.0)
+    assert xyxy_from_xywh(box_from_bop(bb)) == (10.0, 30.0, 20.0, 40.0)
+    # one pixel: w = 0, one pixel wide; the crop of exactly that box holds only that pixel
+    img = np.zeros((20, 30), np.uint8)
+    img[7, 12] = 255
+    box = xyxy_from_xywh(box_from_bop(bbox_xywh(img > 0)))
+    assert box == (12.0, 7.0, 13.0, 8.0)
+    cam = PinholeCamera(np.array([[50.0, 0, 14.5], [0, 50.0, 9.5], [0, 0, 1]]), 30, 20)
+    M, crop = crop_affine(cam, box, (4, 4))
+    assert (warp_image(img, M, 4, nearest=True) == 255).all()
+    assert np.allclose(M @ [12.0, 7.0, 1.0], [1.5, 1.5])  # the pixel's centre is the crop's centre
+    assert np.allclose(crop.project(cam.backproject(np.array([[12.0, 7.0]]), np.array([40.0]))), [[1.5, 1.5]])
+    with pytest.raises(ValueError):
+        box_from_bop([-1, -1, -1, -1])  # BOP's empty box
+
+
+def test_box_conversions_round_trip():
+    r = np.random.default_rng(3)
+    for _ in range(50):
+        xywh = tuple(np.r_[r.uniform(-50, 500, 2), r.uniform(0.5, 200, 2)])
+        assert np.allclose(xywh_from_xyxy(xyxy_from_xywh(xywh)), xywh, rtol=0, atol=1e-12)
+        xyxy = xyxy_from_xywh(xywh)
+        assert np.allclose(xyxy_from_xywh(xywh_from_xyxy(xyxy)), xyxy, rtol=0, atol=1e-12)
+        # BOP [x, y, w, h] (integers) -> edge (x0, y0, x1, y1) -> back: w = x1 - x0 - 1
+        bop = [int(v) for v in np.r_[r.integers(0, 500, 2), r.integers(0, 100, 2)]]
+        x0, y0, x1, y1 = xyxy_from_xywh(box_from_bop(bop))
+        assert [x0, y0, x1 - x0 - 1, y1 - y0 - 1] == bop
+
+
+def test_square_crop_box():
+    # centre kept, side = scale x the longer side, pixel-edge corners
+    assert square_crop_box((10.0, 20.0, 30.0, 10.0), 1.5) == (2.5, 2.5, 47.5, 47.5)
+    assert square_crop_box((10.0, 20.0, 10.0, 30.0), 1.0) == (0.0, 20.0, 30.0, 50.0)
+    # never under one pixel
+    assert square_crop_box((5.0, 5.0, 0.1, 0.2), 1.2) == (4.55, 4.6, 5.55, 5.6)
+    # jitter: the centre moves by (dx, dy) x side, then the side scales by 1 + ds
+    x0, y0, x1, y1 = square_crop_box((10.0, 20.0, 30.0, 10.0), 1.5, (0.1, -0.2, 0.5))
+    assert np.allclose([(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0], [25 + 4.5, 25 - 9.0, 67.5, 67.5])

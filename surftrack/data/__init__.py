@@ -1,9 +1,10 @@
-"""Training data: BOP datasets, object crops (optionally rotated), rendered targets, augmentation and
-torch datasets. Rendering needs spawned workers: see :mod:`surftrack.data.dataset`."""
+"""Training data: BOP datasets, object crops (optionally rotated; the crop geometry is
+:mod:`surftrack.geometry`'s), rendered targets, augmentation and torch datasets. Rendering needs spawned
+workers: see :mod:`surftrack.data.dataset`."""
 
 from surftrack.data.augment import AugmentConfig, augment
 from surftrack.data.bop import BopDataset, DatasetError, Instance, import_surgripe, load_models, models_layout
-from surftrack.data.crops import bop_box_edges, crop_box, crop_with_rotation, pose_in_crop, warp_image
+from surftrack.data.crops import crop_box
 from surftrack.data.dataset import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -20,7 +21,7 @@ from surftrack.data.targets import TargetRenderer, Targets, modal_mask
 
 __all__ = [
     "AugmentConfig", "BopDataset", "CropConfig", "CropDataset", "DatasetError", "IMAGENET_MEAN", "IMAGENET_STD",
-    "Instance", "MASK_MODES", "MixedSampler", "TargetRenderer", "Targets", "augment", "bop_box_edges", "crop_box",
-    "crop_with_rotation", "denormalise_image", "import_surgripe", "load_models", "mixed_dataset", "mixed_indices",
-    "modal_mask", "models_layout", "normalise_image", "pose_in_crop", "warp_image",
+    "Instance", "MASK_MODES", "MixedSampler", "TargetRenderer", "Targets", "augment", "crop_box",
+    "denormalise_image", "import_surgripe", "load_models", "mixed_dataset", "mixed_indices", "modal_mask",
+    "models_layout", "normalise_image",
 ]

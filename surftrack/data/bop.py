@@ -48,7 +48,7 @@ class DatasetError(ValueError):
 @dataclass(eq=False)
 class Instance:
     """One annotated object in one image. ``R`` (3, 3) and ``t`` (3,) mm map model to camera; boxes are
-    BOP's [x, y, w, h] with ``w = xmax - xmin`` over pixel indices (see :func:`surftrack.data.crops.bop_box_edges`)."""
+    BOP's [x, y, w, h] with ``w = xmax - xmin`` over pixel indices (see :func:`surftrack.geometry.box_from_bop`)."""
 
     scene_id: int
     im_id: int

@@ -1,113 +1,30 @@
-"""Square object crops, optionally rotated in the image plane, with the camera that sees exactly the crop.
+"""The training crop box: a square box around an instance's BOP box, jittered for augmentation.
 
-Coordinates follow :mod:`surftrack.geometry.camera`: pixel centres at integer coordinates, crop boxes in
-pixel-EDGE coordinates, where pixel u covers the edge interval [u, u + 1] and the full image is
-(0, 0, W, H). A BOP box [x, y, w, h] has ``w = xmax - xmin`` over pixel INDICES, so the pixels it holds
-cover the edge box ``(x, y, x + w + 1, y + h + 1)`` (:func:`bop_box_edges`): a one-pixel object has
-w = 0 and an edge box one pixel wide.
-
-A crop rotated about its centre is an image warp that no pinhole K with the SAME camera frame can
-describe. It is described instead by rotating the camera frame about its optical axis:
-:func:`crop_with_rotation` returns ``(M, camera, R_crop)`` such that, for every camera-frame point X,
-``camera.project(R_crop @ X) == M @ [original_camera.project(X), 1]``. Poses move to the crop camera as
-``T_crop = R_crop @ T`` (:func:`pose_in_crop`). With square pixels (fx = fy, no skew) R_crop is the
-rotation by the crop angle about z and the crop K is an ordinary K; with fx != fy the exact solution
-(an RQ decomposition) gives a crop K with a small skew K[0, 1] and R_crop's angle differs slightly from
-the image angle. Both are handled by :class:`PinholeCamera.project` and the renderer's projection.
+The crop geometry itself (boxes, warps, rotated crops and their cameras) is :mod:`surftrack.geometry`'s,
+shared with the estimator, which crops a detection box the same way without jitter.
 """
 
 from __future__ import annotations
 
-import cv2
+from collections.abc import Sequence
+
 import numpy as np
 
-from surftrack.geometry import PinholeCamera, crop_affine
-
-Box = tuple[float, float, float, float]
+from surftrack.geometry import Box, box_from_bop, square_crop_box
 
 
-def bop_box_edges(bbox_xywh) -> Box:
-    """Edge box (x0, y0, x1, y1) covering the pixels of a BOP box [x, y, w, h] (w = xmax - xmin)."""
-    x, y, w, h = (float(v) for v in bbox_xywh)
-    if w < 0 or h < 0:
-        raise ValueError(f"empty BOP box {list(bbox_xywh)}")
-    return (x, y, x + w + 1.0, y + h + 1.0)
-
-
-def crop_box(bbox_xywh, scale: float = 1.2, jitter: float = 0.0, rng: np.random.Generator | None = None) -> Box:
-    """Square edge box (x0, y0, x1, y1) around a BOP box: same centre, side = ``scale`` x the longer side.
+def crop_box(bbox_xywh: Sequence[float], scale: float = 1.2, jitter: float = 0.0,
+             rng: np.random.Generator | None = None) -> Box:
+    """Square pixel-edge box (x0, y0, x1, y1) around a BOP box [x, y, w, h] (w = xmax - xmin): same
+    centre, side = ``scale`` x the longer side of its pixels (:func:`surftrack.geometry.square_crop_box`).
 
     ``jitter`` > 0 (needs ``rng``) moves the centre by U(-jitter, jitter) x side along each axis and scales
     the side by 1 + U(-jitter, jitter): the box is NOT clipped to the image (the warp pads with zeros).
+    ValueError for an empty BOP box.
     """
-    x0, y0, x1, y1 = bop_box_edges(bbox_xywh)
-    cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
-    side = float(scale) * max(x1 - x0, y1 - y0)
-    if jitter > 0:
-        if rng is None:
-            raise ValueError("crop jitter needs an rng")
-        dx, dy, ds = rng.uniform(-jitter, jitter, size=3)
-        cx, cy = cx + dx * side, cy + dy * side
-        side *= 1.0 + ds
-    side = max(side, 1.0)
-    return (cx - side / 2.0, cy - side / 2.0, cx + side / 2.0, cy + side / 2.0)
-
-
-def _rq2(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """M (2, 2) with det > 0 = K2 @ Q2: K2 upper triangular with positive diagonal, Q2 a rotation."""
-    phi = np.arctan2(M[1, 0], M[1, 1])
-    c, s = np.cos(phi), np.sin(phi)
-    Q = np.array([[c, -s], [s, c]])
-    K2 = M @ Q.T
-    K2[1, 0] = 0.0
-    return K2, Q
-
-
-def crop_with_rotation(camera: PinholeCamera, box: Box, size: int | tuple[int, int],
-                       angle_rad: float = 0.0) -> tuple[np.ndarray, PinholeCamera, np.ndarray]:
-    """Warp (2, 3) for ``cv2.warpAffine``, the crop camera and ``R_crop`` (3, 3) of a rotated crop.
-
-    The image content is rotated by ``angle_rad`` about the centre of ``box`` (pixel-edge coordinates;
-    positive = clockwise as displayed, y pointing down), then the box is cropped and resized to ``size``
-    (an int for a square, or (width, height)). See the module docstring for the meaning of ``R_crop``.
-    With ``angle_rad = 0`` this is :func:`surftrack.geometry.crop_affine` and ``R_crop`` is the identity.
-    """
-    w, h = (int(size), int(size)) if np.isscalar(size) else (int(size[0]), int(size[1]))
-    M_crop, cam0 = crop_affine(camera, box, (w, h))
-    if angle_rad == 0.0:
-        return M_crop, cam0, np.eye(3)
-    if camera.dist.size and np.any(camera.dist != 0):
-        raise ValueError("a rotated crop of a distorted camera is not a pinhole camera; undistort the image first")
-    x0, y0, x1, y1 = (float(b) for b in box)
-    c = np.array([(x0 + x1) / 2.0 - 0.5, (y0 + y1) / 2.0 - 0.5])  # box centre in pixel-centre coordinates
-    co, si = np.cos(angle_rad), np.sin(angle_rad)
-    R2 = np.array([[co, -si], [si, co]])
-    A_rot = np.eye(3)
-    A_rot[:2, :2], A_rot[:2, 2] = R2, c - R2 @ c
-    A = np.vstack([M_crop, [0.0, 0.0, 1.0]]) @ A_rot
-    B = A @ camera.K
-    K2, Q2 = _rq2(B[:2, :2])
-    K = np.eye(3)
-    K[:2, :2], K[:2, 2] = K2, B[:2, 2]
-    R_crop = np.eye(3)
-    R_crop[:2, :2] = Q2
-    return A[:2], PinholeCamera(K, w, h), R_crop
-
-
-def pose_in_crop(R_crop: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """4x4 model-to-crop-camera pose: ``R_crop`` applied to the model-to-camera ``pose`` (4, 4)."""
-    T = np.asarray(pose, dtype=np.float64).copy()
-    T[:3, :3] = R_crop @ T[:3, :3]
-    T[:3, 3] = R_crop @ T[:3, 3]
-    return T
-
-
-def warp_image(img: np.ndarray, M: np.ndarray, size: int | tuple[int, int], nearest: bool = False) -> np.ndarray:
-    """``img`` warped by ``M`` (source pixel centre -> crop pixel centre) to ``size``; zeros outside.
-    ``nearest`` for masks and ids (bool masks come back bool)."""
-    w, h = (int(size), int(size)) if np.isscalar(size) else (int(size[0]), int(size[1]))
-    src = img.astype(np.uint8) if img.dtype == bool else img
-    out = cv2.warpAffine(src, np.asarray(M, dtype=np.float64), (w, h),
-                         flags=cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return out.astype(bool) if img.dtype == bool else out
+    box = box_from_bop(bbox_xywh)
+    if not jitter > 0:
+        return square_crop_box(box, scale)
+    if rng is None:
+        raise ValueError("crop jitter needs an rng")
+    return square_crop_box(box, scale, rng.uniform(-jitter, jitter, size=3))

@@ -27,8 +27,9 @@ from torch.utils.data import ConcatDataset, Dataset, Sampler
 
 from surftrack.data.augment import AugmentConfig, augment
 from surftrack.data.bop import BopDataset, DatasetError
-from surftrack.data.crops import crop_box, crop_with_rotation, pose_in_crop, warp_image
+from surftrack.data.crops import crop_box
 from surftrack.data.targets import TargetRenderer, modal_mask
+from surftrack.geometry import crop_with_rotation, pose_in_crop, warp_image
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)

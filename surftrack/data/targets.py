@@ -17,8 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surftrack.data.crops import warp_image
-from surftrack.geometry import PinholeCamera
+from surftrack.geometry import PinholeCamera, warp_image
 from surftrack.instruments.part import Part
 
 

@@ -1,5 +1,6 @@
 """Evaluation metrics: 6-DoF pose errors (bop_toolkit definitions), ADD-10 / VOCap AUC accuracy summaries,
-mask Dice and COCO keypoint OKS mAP. Pure numpy / scipy; depends on no other surftrack stage.
+mask Dice and COCO keypoint OKS mAP. Numpy / scipy; of surftrack only the point transform and projection
+of :mod:`surftrack.geometry`.
 
 Pose arguments are model-to-camera (R 3x3, t (3,) or (3, 1), mm), model points (N, 3) in mm, K 3x3 pixels.
 """
@@ -15,11 +16,9 @@ from surftrack.eval.metrics import (
     mspd,
     mssd,
     proj,
-    project_points,
     re,
     te,
     threshold_rate,
-    transform_points,
 )
 from surftrack.eval.oks import (
     OKS_THRESHOLDS,
@@ -50,9 +49,7 @@ __all__ = [
     "oks_ap_per_threshold",
     "oks_map",
     "proj",
-    "project_points",
     "re",
     "te",
     "threshold_rate",
-    "transform_points",
 ]

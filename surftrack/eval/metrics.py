@@ -19,6 +19,8 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.distance import pdist
 
+from surftrack.geometry import project_points, se3, transform_points
+
 #: A symmetry is either a mapping {"R": 3x3, "t": (3,) or (3, 1)} (bop_toolkit's
 #: ``misc.get_symmetry_transformations`` format) or a 4x4 homogeneous matrix, both in the object frame.
 Symmetry = Union[Mapping[str, np.ndarray], np.ndarray]
@@ -90,17 +92,16 @@ def _symmetries(syms: Sequence[Symmetry] | None) -> list[tuple[np.ndarray, np.nd
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def transform_points(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Points (N, 3) mapped by the pose: ``x' = R x + t`` (bop_toolkit ``misc.transform_pts_Rt``)."""
-    pts = _points(pts)
-    return pts @ _rotation(R, "R").T + _translation(t, "t")
+def _posed(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Model points (N, 3) checked and mapped to the camera: ``x' = R x + t`` (bop_toolkit
+    ``misc.transform_pts_Rt``)."""
+    return transform_points(se3(_rotation(R, "R"), _translation(t, "t")), _points(pts))
 
 
-def project_points(pts: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _pixels(pts: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Pixel coordinates (N, 2) of model points: ``u ~ K (R x + t)``, divided by depth
     (bop_toolkit ``misc.project_pts``)."""
-    x = transform_points(pts, R, t) @ _camera(K).T
-    return x[:, :2] / x[:, 2:3]
+    return project_points(_camera(K), _posed(pts, R, t))
 
 
 # ------------------------------------------------------------------------------------------ pose errors
@@ -109,8 +110,8 @@ def add(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, pts:
 
     ``e = mean_x || (R_e x + t_e) - (R_g x + t_g) ||`` in the units of ``pts`` (mm).
     """
-    p_e = transform_points(pts, R_e, t_e)
-    p_g = transform_points(pts, R_g, t_g)
+    p_e = _posed(pts, R_e, t_e)
+    p_g = _posed(pts, R_g, t_g)
     return float(np.linalg.norm(p_e - p_g, axis=1).mean())
 
 
@@ -121,8 +122,8 @@ def adds(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, pts
     ``e = mean_{x1} min_{x2} || (R_g x1 + t_g) - (R_e x2 + t_e) ||``, the nearest neighbours searched with
     a cKDTree built on the estimated points (as bop_toolkit). ``adds <= add`` always.
     """
-    p_e = transform_points(pts, R_e, t_e)
-    p_g = transform_points(pts, R_g, t_g)
+    p_e = _posed(pts, R_e, t_e)
+    p_g = _posed(pts, R_g, t_g)
     dists, _ = cKDTree(p_e).query(p_g, k=1)
     return float(np.mean(dists))
 
@@ -156,12 +157,12 @@ def mssd(
     ``e = min_{S in syms} max_x || (R_e x + t_e) - (R_g (R_S x + t_S) + t_g) ||`` (mm).
     ``syms`` None means no symmetry (the identity only).
     """
-    p_e = transform_points(pts, R_e, t_e)
+    p_e = _posed(pts, R_e, t_e)
     R_g = _rotation(R_g, "R_g")
     t_g = _translation(t_g, "t_g")
     errs = []
     for R_s, t_s in _symmetries(syms):
-        p_g = transform_points(pts, R_g @ R_s, R_g @ t_s + t_g)
+        p_g = _posed(pts, R_g @ R_s, R_g @ t_s + t_g)
         errs.append(np.linalg.norm(p_e - p_g, axis=1).max())
     return float(min(errs))
 
@@ -180,12 +181,12 @@ def mspd(
     ``e = min_{S in syms} max_x || pi(K, R_e, t_e, x) - pi(K, R_g R_S, R_g t_S + t_g, x) ||``.
     ``syms`` None means no symmetry (the identity only).
     """
-    q_e = project_points(pts, K, R_e, t_e)
+    q_e = _pixels(pts, K, R_e, t_e)
     R_g = _rotation(R_g, "R_g")
     t_g = _translation(t_g, "t_g")
     errs = []
     for R_s, t_s in _symmetries(syms):
-        q_g = project_points(pts, K, R_g @ R_s, R_g @ t_s + t_g)
+        q_g = _pixels(pts, K, R_g @ R_s, R_g @ t_s + t_g)
         errs.append(np.linalg.norm(q_e - q_g, axis=1).max())
     return float(min(errs))
 
@@ -195,8 +196,8 @@ def proj(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: 
 
     ``e = mean_x || pi(K, R_e, t_e, x) - pi(K, R_g, t_g, x) ||`` in pixels.
     """
-    q_e = project_points(pts, K, R_e, t_e)
-    q_g = project_points(pts, K, R_g, t_g)
+    q_e = _pixels(pts, K, R_e, t_e)
+    q_g = _pixels(pts, K, R_g, t_g)
     return float(np.linalg.norm(q_e - q_g, axis=1).mean())
 
 

@@ -1,9 +1,12 @@
-"""Pinhole camera with OpenCV conventions.
+"""Pinhole camera with OpenCV conventions, and the one pinhole projection of the package.
 
 Pixel (u, v) has its centre at integer coordinates; x right, y down, z forward; units mm.
+:func:`project_points` is ``cv2.projectPoints`` without distortion, for points already in the camera frame
+(pose them first with :func:`surftrack.geometry.transform_points`).
 A crop box is given in pixel-edge coordinates ``(x0, y0, x1, y1)``: the crop covers the image area from
-edge x0 to edge x1, so a full image is ``(0, 0, W, H)``. :func:`crop_affine` returns the 2x3 matrix for
-``cv2.warpAffine`` and the camera of the crop, consistent with each other.
+edge x0 to edge x1, so a full image is ``(0, 0, W, H)`` (:mod:`surftrack.geometry.boxes`).
+:func:`crop_affine` returns the 2x3 matrix for ``cv2.warpAffine`` and the camera of the crop, consistent
+with each other.
 """
 
 from __future__ import annotations
@@ -11,6 +14,27 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from surftrack.geometry.boxes import Box
+
+
+def project_points(K: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (..., 2) of camera-frame points (..., 3) in mm through the intrinsics
+    ``K`` = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: ``(u, v, 1) ~ K @ X``, no distortion.
+
+    Computed as ``u = fx x/z + cx (+ s y/z)``, ``v = fy y/z + cy``; the entries of ``K`` below the diagonal
+    are taken to be those of an intrinsic matrix and not read. Meant for points in front of the camera
+    (z > 0): a point at z <= 0 gives a meaningless or non-finite pixel, without a warning, so callers that
+    may hold such points mask them by their depth.
+    """
+    X = np.asarray(points, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = X[..., :2] / X[..., 2:3]
+        uv = xy * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    if K[0, 1] != 0.0:  # skew: the crop camera of a rotated crop with fx != fy
+        uv[..., 0] += K[0, 1] * xy[..., 1]
+    return uv
 
 
 @dataclass(frozen=True)
@@ -55,10 +79,9 @@ class PinholeCamera:
         return float(self.K[1, 2])
 
     def project(self, points: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (N, 2) of camera-frame points (N, 3) (no distortion; z must be > 0)."""
-        p = np.asarray(points, dtype=np.float64)
-        uvw = p @ self.K.T
-        return uvw[:, :2] / uvw[:, 2:3]
+        """Pixel coordinates (N, 2) of camera-frame points (N, 3) (no distortion; z must be > 0):
+        :func:`project_points` with this camera's K."""
+        return project_points(self.K, points)
 
     def backproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) of pixels (N, 2) at z-depths (N,)."""
@@ -77,7 +100,7 @@ class PinholeCamera:
         """The camera of this image resized to ``width`` x ``height``."""
         return crop_affine(self, (0.0, 0.0, float(self.width), float(self.height)), (width, height))[1]
 
-    def cropped(self, box: tuple[float, float, float, float], size: tuple[int, int]) -> PinholeCamera:
+    def cropped(self, box: Box, size: tuple[int, int]) -> PinholeCamera:
         """The camera of the crop ``box`` (pixel edges) resized to ``size`` = (width, height)."""
         return crop_affine(self, box, size)[1]
 
@@ -94,7 +117,7 @@ class PinholeCamera:
 
 
 def crop_affine(
-    camera: PinholeCamera, box: tuple[float, float, float, float], size: tuple[int, int]
+    camera: PinholeCamera, box: Box, size: tuple[int, int]
 ) -> tuple[np.ndarray, PinholeCamera]:
     """Warp matrix (2, 3) for ``cv2.warpAffine(img, M, size)`` and the camera of the crop.
 

@@ -89,7 +89,8 @@ def se3_compose(*Ts: np.ndarray) -> np.ndarray:
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply pose T (4, 4) to points (N, 3)."""
+    """Points (N, 3) mapped by the pose ``T`` (4, 4): ``x' = R x + t``, the homogeneous product
+    ``T @ [x, 1]``. For a pose given as (R, t), pass ``se3(R, t)``."""
     T = np.asarray(T, dtype=np.float64)
     return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 

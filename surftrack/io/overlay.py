@@ -34,6 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from surftrack.geometry import project_points, se3, transform_points
 from surftrack.io.video import VideoWriter
 
 __all__ = [
@@ -117,12 +118,6 @@ def _check_frame(frame_rgb) -> np.ndarray:
 # --------------------------------------------------------------------------------------------- projection
 
 
-def _project(K: np.ndarray, p_cam: np.ndarray) -> np.ndarray:
-    """Pixels (..., 2) of camera-frame points (..., 3) in front of the camera."""
-    uvw = p_cam @ K.T
-    return uvw[..., :2] / uvw[..., 2:3]
-
-
 def project_axes(K: np.ndarray, R: np.ndarray, t_mm: np.ndarray, length_mm: float, *,
                  near_mm: float = NEAR_MM) -> np.ndarray:
     """Pixel positions (4, 2) of a part's origin and of the tips of its x, y and z axes.
@@ -134,8 +129,8 @@ def project_axes(K: np.ndarray, R: np.ndarray, t_mm: np.ndarray, length_mm: floa
     K, R, t = _check_K(K), _check_R(R), _check_t(t_mm)
     if not (math.isfinite(length_mm) and length_mm > 0):
         raise ValueError(f"length_mm must be positive, got {length_mm!r}")
-    p_cam = np.vstack([np.zeros(3), float(length_mm) * np.eye(3)]) @ R.T + t
-    uv = _project(K, p_cam)
+    p_cam = transform_points(se3(R, t), np.vstack([np.zeros(3), float(length_mm) * np.eye(3)]))
+    uv = project_points(K, p_cam)
     uv[p_cam[:, 2] < near_mm] = np.nan
     return uv
 
@@ -300,7 +295,7 @@ def _mask_from_triangles(K: np.ndarray, P: np.ndarray, F: np.ndarray, topo: _Top
         tris = tris[np.einsum("ij,ij->i", normal, tris[:, 0]) <= 0]
     if cut.any():
         tris = np.concatenate([tris, _split_by_near_plane(tri[cut], behind[cut], near)[0]])
-    uv = _project(K, tris)
+    uv = project_points(K, tris)
     lo, hi = uv.min(axis=1), uv.max(axis=1)
     visible = (hi[:, 0] >= -1) & (lo[:, 0] <= W) & (hi[:, 1] >= -1) & (lo[:, 1] <= H)
     uv, lo, hi = uv[visible], lo[visible], hi[visible]
@@ -333,12 +328,12 @@ def mesh_outline(K: np.ndarray, R: np.ndarray, t_mm: np.ndarray, vertices_mm: np
     V, F = _check_mesh(vertices_mm, faces)
     if len(F) == 0:
         return []
-    P = V @ R.T + t
+    P = transform_points(se3(R, t), V)
     if not (P[F, 2] >= near_mm).any():
         return []
     topo = _topology(F, len(V))
     segments = _outline_segments(P, F, topo, near_mm)
-    found = _mask_from_outline(_project(K, segments), W, H) if len(segments) else None
+    found = _mask_from_outline(project_points(K, segments), W, H) if len(segments) else None
     if found is None:
         mask, x0, y0 = _mask_from_triangles(K, P, F, topo, W, H, near_mm), 0, 0
     else:
@@ -446,10 +441,10 @@ def _draw_axes(img: np.ndarray, K: np.ndarray, part: PartOverlay) -> np.ndarray 
         if a[2] < NEAR_MM or b[2] < NEAR_MM:
             x = _on_near_plane(a, b, NEAR_MM)
             a, b = (x, b) if a[2] < NEAR_MM else (a, x)
-        seg = _clip_segment(_project(K, a), _project(K, b), lo, hi)
+        seg = _clip_segment(project_points(K, a), project_points(K, b), lo, hi)
         if seg is not None:
             cv2.line(img, _fixed(seg[0]), _fixed(seg[1]), AXIS_COLORS[k], 2, cv2.LINE_AA, _SHIFT)
-    return _project(K, o) if o[2] >= NEAR_MM else None
+    return project_points(K, o) if o[2] >= NEAR_MM else None
 
 
 def _darken(img: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> None:

@@ -1,17 +1,17 @@
 """Per-part 6D pose from an image and detection boxes with a SurfSurg6D model (SurfEmb-style inference).
 
 Crops are made as in training (:mod:`surftrack.data.dataset`): a square box around the detection box,
-side = the model's ``data.scale`` x the box's longer side, no rotation, warped bilinearly to the model's
-crop size. All crops of all frames go through the network together (in batches of ``max_batch``); the
-rest runs per crop: correspondence field, hypotheses, scoring, refinement
-(:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times, the crop
-centre shifted by ``view_shift`` of its side, and the views' poses merged (:mod:`surftrack.pose.views`).
-Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
+side = the model's ``data.scale`` x the box's longer side (:func:`surftrack.geometry.square_crop_box`), no
+rotation, warped bilinearly to the model's crop size. All crops of all frames go through the network
+together (in batches of ``max_batch``); the rest runs per crop: correspondence field, hypotheses, scoring,
+refinement (:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times,
+the crop centre shifted by ``view_shift`` of its side, and the views' poses merged
+(:mod:`surftrack.pose.views`). Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
 keeps the camera frame), t in mm.
 
 Boxes are pixel-EDGE boxes ``(x, y, w, h)`` as in ``det.json`` (:mod:`surftrack.synth.detections`): the
 box covers ``[x, x + w] x [y, y + h]`` with pixel centres at integers. A BOP ``bbox`` (w = xmax - xmin
-over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`box_from_bop`).
+over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`surftrack.geometry.box_from_bop`).
 """
 
 from __future__ import annotations
@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from surftrack.data.crops import warp_image
-from surftrack.geometry import PinholeCamera, crop_affine
+from surftrack.geometry import Box, PinholeCamera, crop_affine, square_crop_box, warp_image
 from surftrack.model.checkpoint import load_checkpoint
 from surftrack.model.config import DataCfg
 from surftrack.model.surfsurg6d import SurfSurg6D
@@ -37,7 +36,6 @@ from surftrack.pose.solver import StageTimer, solve_field
 from surftrack.pose.surface import bank_is_cached, part_bank
 from surftrack.pose.views import merge_views, view_offsets
 
-Box = tuple[float, float, float, float]
 STAGES = ("crop", "forward", "correspondence", "hypotheses", "scoring", "refinement")
 
 
@@ -73,20 +71,6 @@ class PartPose:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = self.R, self.t
         return T
-
-
-def box_from_bop(bbox) -> Box:
-    """The edge box (x, y, w, h) of a BOP ``bbox`` [x, y, w, h] (w = xmax - xmin over pixel indices)."""
-    x, y, w, h = (float(v) for v in bbox)
-    return (x, y, w + 1.0, h + 1.0)
-
-
-def square_crop_box(box_xywh: Box, scale: float) -> Box:
-    """Square edge box (x0, y0, x1, y1): the box's centre, side ``scale`` x its longer side (as
-    :func:`surftrack.data.crops.crop_box` for the same pixels, without jitter)."""
-    x, y, w, h = box_xywh
-    cx, cy, side = x + w / 2.0, y + h / 2.0, max(float(scale) * max(w, h), 1.0)
-    return (cx - side / 2.0, cy - side / 2.0, cx + side / 2.0, cy + side / 2.0)
 
 
 @dataclass

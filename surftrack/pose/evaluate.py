@@ -2,8 +2,9 @@
 occlusion (the layout of the paper's SurgRIPE table), timings, and the output files.
 
 ``evaluate(checkpoint, data_dir, split="test", preset="accurate")`` runs :class:`PoseEstimator` on every
-instance of the split with the GROUND-TRUTH visible box (``bbox_visib`` -> :func:`box_from_bop`), several
-images per :meth:`PoseEstimator.estimate_batch` call, and returns a JSON-ready dict;
+instance of the split with the GROUND-TRUTH visible box (``bbox_visib`` ->
+:func:`surftrack.geometry.box_from_bop`), several images per :meth:`PoseEstimator.estimate_batch` call, and
+returns a JSON-ready dict;
 ``write_eval_outputs(result, "out/eval.json")`` writes the JSON, a markdown table (``.md``), a BOP results
 CSV (``.bop.csv``) and an ADD accuracy-threshold plot (``.png``) next to each other.
 
@@ -40,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
+from surftrack.geometry import box_from_bop
 from surftrack.jsonsafe import json_safe
 from surftrack.pose.kinematic import (
     KinematicConfig,
@@ -208,7 +210,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
     """:func:`evaluate` / :func:`evaluate_seeds`: one result per seed (the preset's when ``seeds`` is None,
     through :meth:`PoseEstimator.estimate_batch`)."""
     from surftrack.data.bop import BopDataset, DatasetError
-    from surftrack.pose.estimator import PoseEstimator, box_from_bop
+    from surftrack.pose.estimator import PoseEstimator
 
     if max_images is not None and int(max_images) < 1:
         raise ValueError(f"max_images must be positive, got {max_images}")

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surftrack.geometry import project_points, se3, transform_points
 from surftrack.pose.preset import Preset
 
 
@@ -34,12 +35,11 @@ class Refined:
 
 
 def reprojection_errors(R: np.ndarray, t: np.ndarray, pts: np.ndarray, uv: np.ndarray, K: np.ndarray) -> np.ndarray:
-    X = pts @ R.T + t
-    z = X[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = (X @ K.T)[:, :2] / z[:, None]
-        err = np.linalg.norm(proj - uv, axis=1)
-    return np.where(z > 1e-6, err, np.inf)
+    """Pixel distances (A,) between model points ``pts`` (A, 3) mm projected at (R, t) through ``K`` and
+    their pixels ``uv`` (A, 2); inf for points not in front of the camera."""
+    X = transform_points(se3(R, t), pts)
+    err = np.linalg.norm(project_points(K, X) - uv, axis=1)
+    return np.where(X[:, 2] > 1e-6, err, np.inf)
 
 
 def lm_refine(R: np.ndarray, t: np.ndarray, pts: np.ndarray, uv: np.ndarray, K: np.ndarray,

@@ -18,13 +18,13 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from surftrack.geometry import PinholeCamera, crop_affine
+from surftrack.geometry import PinholeCamera, box_from_bop, crop_affine, square_crop_box
 from surftrack.instruments.part import Part
 from surftrack.model.surfsurg6d import PartInfo, surface_bank
 from surftrack.pose.correspondence import CorrField, build_field, grid_camera
-from surftrack.pose.estimator import square_crop_box
 from surftrack.pose.preset import Preset
 from surftrack.pose.surface import SurfaceBank
+from surftrack.synth.bop_writer import bbox_xywh
 
 
 @dataclass
@@ -54,10 +54,10 @@ def rendered_problem(part: Part, pose: np.ndarray, camera: PinholeCamera, preset
     crop = Renderer(crop_size, crop_size)
     try:
         iid = full.add_mesh(part.mesh)
-        ys, xs = np.nonzero(full.render(camera, {iid: T}, lights=[], modalities={"instance"}).instance == iid)
-        if len(xs) == 0:
+        visible = full.render(camera, {iid: T}, lights=[], modalities={"instance"}).instance == iid
+        if not visible.any():
             raise ValueError("the part is not in view")
-        box = (float(xs.min()), float(ys.min()), float(xs.max() + 1 - xs.min()), float(ys.max() + 1 - ys.min()))
+        box = box_from_bop(bbox_xywh(visible))
         _, ccam = crop_affine(camera, square_crop_box(box, box_scale), (crop_size, crop_size))
         cid = crop.add_mesh(part.mesh)
         res = crop.render(ccam, {cid: T}, lights=[], modalities={"instance", "xyz"})

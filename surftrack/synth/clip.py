@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
-from surftrack.geometry import PinholeCamera, so3_exp, transform_points
+from surftrack.geometry import PinholeCamera, box_from_bop, so3_exp, transform_points
 from surftrack.instruments import Instrument, JointState, assign_obj_ids, load_instrument, rcm_base_pose
 from surftrack.io.video import VideoWriter  # a leaf module: the one import of a later stage (see surftrack.io)
 from surftrack.render import Renderer, add_instrument
@@ -627,10 +627,8 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
                             "bbox_visib": box,
                         })
                         visible[f"{k}:{tr.instrument.name}/{p}"] += n_vis > 0
-                        # BOP boxes count pixel indices (w = xmax - xmin over pixel columns); det.json boxes
-                        # are in pixel-EDGE coordinates (pixel u covers [u, u + 1]), so the box around
-                        # columns x..x+w is [x, x + w + 1]: width and height grow by one pixel.
-                        boxes[pid] = (box[0], box[1], box[2] + 1, box[3] + 1) if n_vis else None
+                        # det.json boxes are pixel-EDGE boxes, the gt's BOP boxes count pixel indices
+                        boxes[pid] = box_from_bop(box) if n_vis else None
                         vis_px[pid] = n_vis
                 frames_gt[str(i)] = {"time": i / fps, "gt": gt}
                 if len(handles) == 2:

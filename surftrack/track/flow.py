@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from surftrack.geometry.transforms import rotation_angle_deg, so3_exp
+from surftrack.geometry import project_points, rotation_angle_deg, se3, so3_exp, transform_points
 
 LK_PARAMS = dict(winSize=(21, 21), maxLevel=3,
                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
@@ -52,13 +52,9 @@ class TrackPoints:
         return TrackPoints(self.uv[keep], self.xyz[keep])
 
 
-def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (N, 2) and camera depths (N,) of model points ``pts`` at pose (R, t)."""
-    X = pts @ R.T + t
-    z = X[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (X[:, :2] / z[:, None]) * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
-    return uv, z
+def _pixels(K: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of model points ``pts`` (N, 3, mm) at the model-to-camera pose (R, t)."""
+    return project_points(K, transform_points(se3(R, t), pts))
 
 
 def visible_points(gray: np.ndarray, K: np.ndarray, samples: dict[str, SurfaceSamples],
@@ -81,8 +77,9 @@ def visible_points(gray: np.ndarray, K: np.ndarray, samples: dict[str, SurfaceSa
     for k, name in enumerate(names):
         R, t = poses[name]
         s = samples[name]
-        uv, z = project(K, R, t, s.points)
-        facing = ((s.normals @ R.T) * (s.points @ R.T + t)).sum(1) < 0
+        X = transform_points(se3(R, t), s.points)
+        uv, z = project_points(K, X), X[:, 2]
+        facing = ((s.normals @ R.T) * X).sum(1) < 0
         ok = facing & (z > 1e-3) & np.all(np.isfinite(uv), 1)
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < H - 1)
         idx = np.nonzero(ok)[0]
@@ -183,8 +180,8 @@ def _jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> n
         d = np.zeros(6)
         h = 1e-4 if k < 3 else 1e-6
         d[k] = h
-        up, _ = project(K, R @ so3_exp(d[3:]), t + d[:3], xyz)
-        dn, _ = project(K, R @ so3_exp(-d[3:]), t - d[:3], xyz)
+        up = _pixels(K, R @ so3_exp(d[3:]), t + d[:3], xyz)
+        dn = _pixels(K, R @ so3_exp(-d[3:]), t - d[:3], xyz)
         J[:, k] = ((up - dn) / (2 * h)).reshape(-1)
     return J
 
@@ -207,7 +204,7 @@ def pnp_measurement(pts: TrackPoints, K: np.ndarray, R0: np.ndarray, t0: np.ndar
         if not ok or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0:
             return None
         R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3)
-        uv, _ = project(K, R, t, obj)
+        uv = _pixels(K, R, t, obj)
         err = np.linalg.norm(uv - img, axis=1)
         inl = err < inlier_px
         if inl.sum() < min_points:

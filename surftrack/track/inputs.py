@@ -28,8 +28,6 @@ import numpy as np
 
 from surftrack.synth.detections import detections_document, validate_detections
 
-Box = tuple[float, float, float, float]
-
 
 class InputError(ValueError):
     """A bad input file; the message is one line naming the file."""

@@ -29,14 +29,14 @@ import cv2
 import numpy as np
 import trimesh
 
+from surftrack.geometry import Box, project_points, se3, transform_points
 from surftrack.pose import PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor
 from surftrack.track.config import TrackConfig, TrackConfigError
-from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, project,
-                                  track_points, visible_points)
+from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
+                                  visible_points)
 from surftrack.track.kalman import PoseKalman
 
-Box = tuple[float, float, float, float]
 STATUSES = ("init", "keyframe", "tracking", "predicted", "lost")
 
 
@@ -87,11 +87,11 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
                   size: tuple[int, int]) -> tuple[Box | None, float]:
     """(box of the projected vertices clipped to the image (W, H), fraction of the unclipped box area
     inside the image). (None, 0) when the part is behind the camera or entirely outside."""
-    uv, z = project(K, R, t, vertices)
-    front = z > 1e-3
+    X = transform_points(se3(R, t), vertices)
+    front = X[:, 2] > 1e-3
     if front.sum() < 3:
         return None, 0.0
-    uv = uv[front]
+    uv = project_points(K, X)[front]
     x0, y0 = uv.min(0)
     x1, y1 = uv.max(0) + 1.0  # pixel-edge box around pixel centres
     W, H = size
