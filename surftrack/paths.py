@@ -1,19 +1,28 @@
-"""Where surftrack finds its bundled configuration files."""
+"""Where surftrack finds the files it ships: the configuration folder and the bundled model.
+
+Both are package data (``surftrack.configs`` and ``surftrack.models``; in the source tree the top-level
+``configs/`` and ``models/`` folders, mapped by ``pyproject.toml``), found through
+:mod:`importlib.resources`, so an editable checkout, a wheel and an sdist install behave the same from any
+working directory. surftrack installs as files on disk (torch does too), so the resources are real paths.
+"""
 
 from __future__ import annotations
 
-import os
+from importlib import resources
 from pathlib import Path
 
 
+def _package_dir(package: str) -> Path:
+    """The folder of ``package`` on disk."""
+    return Path(str(resources.files(package)))
+
+
 def configs_dir() -> Path:
-    """The ``configs/`` folder: ``$SURFTRACK_CONFIGS`` if set, else the one beside the package."""
-    env = os.environ.get("SURFTRACK_CONFIGS")
-    return Path(env) if env else Path(__file__).resolve().parent.parent / "configs"
+    """The bundled ``configs`` folder (instruments, synthesis, tracking and training YAML, schemas)."""
+    return _package_dir("surftrack.configs")
 
 
 def default_model_path() -> Path:
-    """The bundled default model: ``$SURFTRACK_MODEL`` if set, else ``models/default.pt`` beside the
-    package (the Large Needle Driver, trained with our own pipeline; see ``models/MODEL_CARD.md``)."""
-    env = os.environ.get("SURFTRACK_MODEL")
-    return Path(env) if env else Path(__file__).resolve().parent.parent / "models" / "default.pt"
+    """The bundled default model (the Large Needle Driver, trained with our own pipeline; see
+    ``models/MODEL_CARD.md``). ``$SURFTRACK_MODEL`` overrides it on the command line."""
+    return _package_dir("surftrack.models") / "default.pt"
