@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from surftrack import __version__
-from surftrack.instruments import JOINT_NAMES
+from surftrack.instruments import BUILTIN, JOINT_NAMES, InstrumentRegistry
 from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
@@ -39,7 +39,8 @@ class AnnotateOptions:
     """What to write and how to track. ``start``/``end``: seconds of video time (None = from the start /
     to the end). ``mcap_images``: JPEG frames plus annotations in the MCAP (bigger files). ``joints``:
     fit each instrument's joint angles every frame (foxglove.JointStates in the MCAP; also CSV to
-    ``joints_csv``)."""
+    ``joints_csv``). ``instruments``: where instrument names are looked up (the CLI's ``--instrument`` and
+    ``$SURFTRACK_INSTRUMENTS``)."""
 
     model: str | Path | None = None
     camera: str | Path | None = None
@@ -54,17 +55,18 @@ class AnnotateOptions:
     joints_csv: str | Path | None = None
     mcap_images: bool = False
     progress: bool = True
+    instruments: InstrumentRegistry = BUILTIN
 
 
-def match_parts(doc: dict, model, source: str) -> tuple[list[PartSpec], list[str]]:
+def match_parts(doc: dict, model, source: str,
+                instruments: InstrumentRegistry = BUILTIN) -> tuple[list[PartSpec], list[str]]:
     """PartSpecs for the det.json parts the model knows, and a note per skipped instrument. An
     instrument the model knows with a part name it lacks is an error (a typo, not another tool); no known
-    part at all is an error."""
-    from surftrack.instruments import load_instrument
+    part at all is an error. Aliases are resolved through ``instruments``."""
 
     def canonical(name: str) -> str:
         try:
-            return load_instrument(name).name
+            return instruments.load(name).name
         except Exception:  # noqa: BLE001 - an instrument we do not ship is still a valid name
             return name
 
@@ -221,12 +223,12 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     if not model_path.is_file():
         raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
     model, train_cfg, _ = load_checkpoint(model_path, opts.device or "cpu")
-    specs, notes = match_parts(doc, model, str(boxes))
+    specs, notes = match_parts(doc, model, str(boxes), opts.instruments)
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
     _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)
     estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
                               crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
-    tracker = Tracker(estimator, cam.K, size, specs, opts.config)
+    tracker = Tracker(estimator, cam.K, size, specs, opts.config, opts.instruments)
     undistort = cam.undistorter()
     per_frame = _frame_boxes(doc, cam)
     det_times = {} if doc.get("meta", {}).get("converted_from") == "coco" else \
@@ -249,7 +251,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
 
         hashes = part_hashes(model.parts)
         for inst in sorted({s.instrument for s in specs}):
-            described, why = described_instrument(inst, hashes[inst], caller_reports=True)
+            described, why = described_instrument(inst, hashes[inst], caller_reports=True,
+                                                  registry=opts.instruments)
             if described is None:
                 lost = " and ".join(w for w, on in (("no joint angles", joints),
                                                     ("no instrument-consistent fit", opts.config.kinematic)) if on)

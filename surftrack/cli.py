@@ -7,13 +7,15 @@ The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAM
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
-from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from surftrack import __version__
+
+if TYPE_CHECKING:
+    from surftrack.instruments import InstrumentRegistry
 
 
 #: surftrack.pose.preset.PRESETS's names, spelt out so that building the parser does not import torch.
@@ -32,34 +34,25 @@ def _seed(text: str) -> int:
     return value
 
 
-@contextlib.contextmanager
-def _use_instruments(files: list[str] | None) -> Iterator[None]:
-    """``--instrument YAML`` (repeatable): check each description and make it known to the command (and
-    to its worker processes) through ``$SURFTRACK_INSTRUMENTS``, ahead of what it held (restored
-    afterwards). The whole search path is checked here, so a bad entry fails the command in one line."""
-    from surftrack.instruments import INSTRUMENTS_ENV, instrument_files, load_instrument_file
+def _registry(args: argparse.Namespace) -> InstrumentRegistry:
+    """The instruments a command knows: ``$SURFTRACK_INSTRUMENTS`` (read here, once) with the command's
+    ``--instrument`` YAML files ahead, each checked so that a bad one fails the command in one line."""
+    from surftrack.instruments import InstrumentRegistry
 
-    before = os.environ.get(INSTRUMENTS_ENV)
-    for f in files or []:
-        if not Path(f).is_file():
-            raise CLIError(f"{f}: --instrument: no such instrument description (a YAML file)")
-        load_instrument_file(f)  # a malformed description fails here, naming the file
-    if files:
-        os.environ[INSTRUMENTS_ENV] = os.pathsep.join([*(str(Path(f).resolve()) for f in files), *filter(None, [before])])
-    try:
-        instrument_files()
-        yield
-    finally:
-        if before is None:
-            os.environ.pop(INSTRUMENTS_ENV, None)
-        else:
-            os.environ[INSTRUMENTS_ENV] = before
+    registry = InstrumentRegistry.from_env(os.environ).ahead(getattr(args, "instrument_files", None) or [])
+    registry.files()  # the whole search path is read now: a bad entry fails before any work
+    return registry
+
+
+def _model(args: argparse.Namespace) -> str | None:
+    """``--model``, else ``$SURFTRACK_MODEL``, else None (the bundled model)."""
+    return args.model or os.environ.get("SURFTRACK_MODEL") or None
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from surftrack.demo import run_demo
 
-    s = run_demo(Path(args.out), seconds=args.seconds, fps=args.fps, seed=args.seed, model=args.model,
+    s = run_demo(Path(args.out), seconds=args.seconds, fps=args.fps, seed=args.seed, model=_model(args),
                  progress=not args.quiet)
     c, t = s["clip"], s["tracking"]
     print(f"surftrack demo: a {c['seconds']:g} s synthetic clip at {c['fps']:g} fps (made in {c['made_in_s']} s; "
@@ -75,10 +68,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_instruments(args: argparse.Namespace) -> int:
-    from surftrack.instruments import export_bop_models, list_instruments, load_instrument
+    from surftrack.instruments import export_bop_models
 
-    names = args.names or list_instruments()
-    insts = [load_instrument(n) for n in names]
+    registry = _registry(args)
+    names = args.names or registry.names()
+    insts = [registry.load(n) for n in names]
     for inst in insts:
         print(f"{inst.name} ({', '.join(inst.aliases) or 'no alias'}): {inst.description}")
         for pname, part in inst.parts.items():
@@ -104,7 +98,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     if args.images <= 0:
         raise CLIError(f"--images must be positive, got {args.images}")
     out = Path(args.out)
-    r = generate_dataset(out, cfg, args.images, seed=args.seed, workers=args.workers, progress=not args.quiet)
+    r = generate_dataset(out, cfg, args.images, seed=args.seed, workers=args.workers, progress=not args.quiet,
+                         instruments=_registry(args))
     print(f"surftrack synth: {r.made} images made, {r.skipped} already there, {r.failed} failed "
           f"in {r.seconds:.1f} s ({r.made / max(r.seconds, 1e-9):.2f} images/s, {args.workers} worker(s))")
     print(f"  acceptance {r.acceptance_rate:.1%} of {r.attempts} attempts; rejections: "
@@ -125,7 +120,8 @@ def _cmd_synth_clip(args: argparse.Namespace) -> int:
         cfg = ClipConfig.from_dict(overrides)
     except ValueError as e:
         raise CLIError(str(e)) from None
-    s = make_clip(Path(args.out), args.instrument, cfg, seed=args.seed, progress=not args.quiet)
+    s = make_clip(Path(args.out), args.instrument, cfg, seed=args.seed, progress=not args.quiet,
+                  instruments=_registry(args))
     print(f"surftrack synth-clip: {s['frames']} frames in {s['seconds']:.1f} s; main tool out of view in "
           f"{s['main_out_of_view_frames']} frames, occluded by the second tool in {s['occluded_frames']}")
     print(f"wrote {s['video']}, {s['camera']}, {s['gt']}, {s['det']}")
@@ -177,12 +173,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.views is not None:
         preset = preset.replace(views=_checked_views(args.views))
     kwargs = dict(split=args.split, max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
-                  device=args.device, progress=not args.quiet, kinematic=args.kinematic)
-    with _use_instruments(args.instrument):
-        if len(args.seed) == 1:
-            results = [evaluate(args.model, args.data, preset=preset.replace(seed=args.seed[0]), **kwargs)]
-        else:  # one network forward for all seeds; one set of outputs each, <stem>.seedN.*, and a table
-            results = evaluate_seeds(args.model, args.data, args.seed, preset=preset, **kwargs)
+                  device=args.device, progress=not args.quiet, kinematic=args.kinematic,
+                  instruments=_registry(args))
+    if len(args.seed) == 1:
+        results = [evaluate(args.model, args.data, preset=preset.replace(seed=args.seed[0]), **kwargs)]
+    else:  # one network forward for all seeds; one set of outputs each, <stem>.seedN.*, and a table
+        results = evaluate_seeds(args.model, args.data, args.seed, preset=preset, **kwargs)
     for r in results:
         one = out if len(results) == 1 else out.with_name(f"{out.stem}.seed{r['seed']}{out.suffix}")
         paths = write_eval_outputs(r, one)
@@ -220,17 +216,17 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
         if not torch.cuda.is_available():
             raise CLIError("--device cuda: no CUDA device is available (use --device cpu)")
+    registry = _registry(args)
     jobs = video_jobs(args.video, args.boxes, args.camera, args.out)
     if len(jobs) > 1 and (args.overlay or args.export_tum or args.joints_csv):
         raise CLIError("--overlay, --export-tum and --joints-csv take one video; with a folder, run the videos "
                        "one by one")
     for video, boxes, camera, out in jobs:
-        opts = AnnotateOptions(model=args.model, camera=camera, out=out, config=cfg, device=args.device,
+        opts = AnnotateOptions(model=_model(args), camera=camera, out=out, config=cfg, device=args.device,
                                start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
                                mcap_images=args.images, progress=not args.quiet, joints=not args.no_joints,
-                               joints_csv=args.joints_csv)
-        with _use_instruments(args.instrument):
-            s = annotate_video(video, boxes, opts)
+                               joints_csv=args.joints_csv, instruments=registry)
+        s = annotate_video(video, boxes, opts)
         for note in s["notes"]:
             print(f"note: {note}")
         print(f"surftrack: {s['video']}: {s['frames']} frames in {s['seconds']:.1f} s ({s['fps']:.1f} frames/s)")
@@ -334,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--kinematic", action="store_true",
                     help="evaluate instrument-consistent poses: each instrument's articulated configuration "
                          "fitted to its parts' estimates (surftrack.pose.kinematic), as the tracker outputs them")
-    ev.add_argument("--instrument", action="append", metavar="YAML",
+    ev.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
                     help="an instrument description the built-in ones lack, for --kinematic (repeatable)")
     ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -361,7 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
     tk.add_argument("--joints-csv", metavar="CSV", help="also write the fitted joint angles per frame as CSV")
     tk.add_argument("--no-joints", action="store_true", help="skip the per-frame joint-angle fit")
-    tk.add_argument("--instrument", action="append", metavar="YAML",
+    tk.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
                     help="your instrument's description (the YAML its model was trained from), for joint angles "
                          "and the instrument-consistent fit; repeatable")
     tk.add_argument("--quiet", action="store_true", help="no progress bar")

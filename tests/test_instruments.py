@@ -477,9 +477,10 @@ def test_unreadable_descriptions(tmp_path):
 
 
 def test_user_instruments_from_the_search_path(tmp_path, monkeypatch):
-    """``$SURFTRACK_INSTRUMENTS`` (files or folders) makes a user's description known by name, beside the
-    built-in ones; an entry that does not exist is an error naming it."""
-    from surftrack.instruments import INSTRUMENTS_ENV, InstrumentError, list_instruments, load_instrument
+    """A registry of the user's files or folders (``$SURFTRACK_INSTRUMENTS``, read by
+    :meth:`InstrumentRegistry.from_env`) makes a user's description known by name, beside the built-in
+    ones, without touching the process environment; an entry that does not exist is an error naming it."""
+    from surftrack.instruments import INSTRUMENTS_ENV, InstrumentError, InstrumentRegistry, load_instrument
 
     lnd_yaml = Path(load_instrument("lnd").source).read_text()
     folder = tmp_path / "tools"
@@ -489,20 +490,26 @@ def test_user_instruments_from_the_search_path(tmp_path, monkeypatch):
     with pytest.raises(InstrumentError, match="unknown instrument 'my_tool'"):
         load_instrument("my_tool")
     monkeypatch.setenv(INSTRUMENTS_ENV, str(folder))
-    assert load_instrument("mt").name == "my_tool" and "my_tool" in list_instruments()
-    assert load_instrument("lnd").name == "large_needle_driver"
-    monkeypatch.setenv(INSTRUMENTS_ENV, str(tmp_path / "missing.yaml"))
+    with pytest.raises(InstrumentError, match="unknown instrument 'my_tool'"):
+        load_instrument("my_tool")  # the environment is read where a registry is made, nowhere else
+    user = InstrumentRegistry.from_env()
+    assert user == InstrumentRegistry.from_env({INSTRUMENTS_ENV: str(folder)}) == InstrumentRegistry((folder,))
+    assert user.load("mt").name == "my_tool" and "my_tool" in user.names()
+    assert user.load("lnd").name == "large_needle_driver"
     with pytest.raises(InstrumentError, match="missing.yaml: instrument description not found"):
-        load_instrument("my_tool")
+        InstrumentRegistry((tmp_path / "missing.yaml",)).load("my_tool")
     # among the user's descriptions the first listed wins; none may claim a built-in name or alias
     v2 = tmp_path / "v2.yaml"
     v2.write_text((folder / "my_tool.yaml").read_text().replace("aliases: [mt]", "aliases: [mt2]"))
-    monkeypatch.setenv(INSTRUMENTS_ENV, os.pathsep.join([str(v2), str(folder)]))
-    assert load_instrument("my_tool").source.resolve() == v2.resolve()
-    assert load_instrument("mt").source.resolve() == (folder / "my_tool.yaml").resolve()
+    both = InstrumentRegistry.from_env({INSTRUMENTS_ENV: os.pathsep.join([str(v2), str(folder)])})
+    assert both.load("my_tool").source.resolve() == v2.resolve()
+    assert both.load("mt").source.resolve() == (folder / "my_tool.yaml").resolve()
+    assert user.ahead([v2]).load("my_tool").source.resolve() == v2.resolve()
+    with pytest.raises(InstrumentError, match="nope.yaml: no such instrument description"):
+        user.ahead([tmp_path / "nope.yaml"])
     for bad, msg in (("aliases: [mt]", "'lnd' is the built-in instrument"), ("aliases:\n  - ''", "'aliases' must be"),
                      ("aliases: mt", "'aliases' must be a list of names")):
         v2.write_text((folder / "my_tool.yaml").read_text().replace("aliases: [mt]", bad.replace("[mt]", "[lnd]")
                                                                     if "built-in" in msg else bad))
         with pytest.raises(InstrumentError, match=msg):
-            load_instrument("lnd")
+            both.load("lnd")

@@ -424,7 +424,7 @@ def test_a_users_instrument_is_tracked_with_joints_when_its_description_is_given
     assert main([*args, "-o", str(tmp_path / "c.mcap"), "--instrument", str(other)]) == 0
     assert "the model's meshes of ['shaft'] differ from those of" in capsys.readouterr().out
     assert main([*args, "-o", str(tmp_path / "d.mcap"), "--instrument", str(tmp_path / "nope.yaml")]) == 2
-    assert "nope.yaml: --instrument: no such instrument description" in capsys.readouterr().err
+    assert "nope.yaml: no such instrument description" in capsys.readouterr().err
 
 
 def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, lnd_parts, tiny_ckpt):

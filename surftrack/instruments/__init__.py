@@ -12,22 +12,23 @@ from surftrack.instruments.kinematics import (
     rcm_base_pose,
 )
 from surftrack.instruments.library import (
+    BUILTIN,
     INSTRUMENTS_ENV,
     Attachment,
     Instrument,
     InstrumentError,
+    InstrumentRegistry,
     instrument_files,
     list_instruments,
     load_instrument,
     load_instrument_file,
-    user_instrument_files,
 )
 from surftrack.instruments.part import Material, Part
 
 __all__ = [
-    "INSTRUMENTS_ENV", "Attachment", "FitConfig", "Instrument", "InstrumentError", "JOINT_NAMES", "JointFit",
+    "BUILTIN", "INSTRUMENTS_ENV", "Attachment", "FitConfig", "Instrument", "InstrumentError", "InstrumentRegistry",
+    "JOINT_NAMES", "JointFit",
     "JointLimits", "JointState", "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "estimate_trocar",
     "export_bop_models", "fit_configuration", "instrument_files", "list_instruments", "load_bop_models",
     "load_instrument", "load_instrument_file", "model_info", "rcm_base_pose",
-    "user_instrument_files",
 ]

@@ -9,6 +9,7 @@ given in degrees. See ``configs/instruments/large_needle_driver.yaml`` for a com
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -147,20 +148,103 @@ def load_instrument_file(path: str | Path) -> Instrument:
     )
 
 
-def user_instrument_files() -> list[Path]:
-    """The instrument YAML files named by ``$SURFTRACK_INSTRUMENTS``, in order: files or folders of
-    ``*.yaml``, separated by ``os.pathsep`` (the CLI's ``--instrument`` puts its files first). Raises
-    :class:`InstrumentError` for an entry that does not exist."""
-    files: list[Path] = []
-    for entry in filter(None, os.environ.get(INSTRUMENTS_ENV, "").split(os.pathsep)):
-        p = Path(entry)
-        if p.is_dir():
-            files += sorted(p.glob("*.yaml")) + sorted(p.glob("*.yml"))
-        elif p.is_file():
-            files.append(p)
-        else:
-            raise InstrumentError(f"{p}: instrument description not found (from ${INSTRUMENTS_ENV})")
-    return files
+@dataclass(frozen=True)
+class InstrumentRegistry:
+    """Where instrument names are looked up: the built-in descriptions (``configs/instruments``) and then a
+    user's YAML files or folders of them (``user``, in order; where two claim a name, the first wins).
+
+    Passed down explicitly rather than read from the environment, so that one process can hold several
+    (a test, a notebook, a command with ``--instrument``). The command line builds it once from
+    ``$SURFTRACK_INSTRUMENTS`` (:meth:`from_env`) and puts ``--instrument`` files ahead (:meth:`ahead`).
+    Hashable and picklable: spawned workers and caches take it as it is."""
+
+    user: tuple[Path, ...] = ()
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> InstrumentRegistry:
+        """The registry named by ``$SURFTRACK_INSTRUMENTS`` (files or folders of ``*.yaml``, separated by
+        ``os.pathsep``) in ``environ`` (default ``os.environ``)."""
+        value = (os.environ if environ is None else environ).get(INSTRUMENTS_ENV, "")
+        return cls(tuple(Path(e) for e in value.split(os.pathsep) if e))
+
+    def ahead(self, files: Sequence[str | Path]) -> InstrumentRegistry:
+        """This registry with ``files`` (instrument YAML files, checked here) searched first."""
+        for f in files:
+            if not Path(f).is_file():
+                raise InstrumentError(f"{f}: no such instrument description (a YAML file)")
+            load_instrument_file(f)  # a malformed description fails here, naming the file
+        return InstrumentRegistry(tuple(Path(f).resolve() for f in files) + self.user)
+
+    def user_files(self) -> list[Path]:
+        """The user's description files, in search order. Raises :class:`InstrumentError` for an entry
+        that does not exist."""
+        files: list[Path] = []
+        for p in self.user:
+            if p.is_dir():
+                files += sorted(p.glob("*.yaml")) + sorted(p.glob("*.yml"))
+            elif p.is_file():
+                files.append(p)
+            else:
+                raise InstrumentError(f"{p}: instrument description not found (from ${INSTRUMENTS_ENV} or "
+                                      "--instrument)")
+        return files
+
+    def files(self) -> dict[str, Path]:
+        """Known instrument descriptions, keyed by name and by alias. A user's description may not claim a
+        built-in name or alias: that raises :class:`InstrumentError` naming both files."""
+        return {key: f for key, (f, _) in self._known().items()}
+
+    def names(self) -> list[str]:
+        """Names (not aliases) of the known instruments."""
+        return sorted({name for _, name in self._known().values()})
+
+    def path(self, name_or_path: str | Path) -> Path:
+        """The description file of a known instrument (name or alias, e.g. ``lnd``), or the YAML path
+        itself; :class:`InstrumentError` when there is none."""
+        p = Path(name_or_path)
+        if p.suffix in (".yaml", ".yml"):
+            if not p.is_file():
+                raise InstrumentError(f"{p}: instrument description not found")
+            return p
+        files = self.files()
+        if str(name_or_path) not in files:
+            raise InstrumentError(f"unknown instrument {str(name_or_path)!r}; known: {', '.join(sorted(files))} "
+                                  f"(give its YAML file, pass it with --instrument, or list it in "
+                                  f"${INSTRUMENTS_ENV})")
+        return files[str(name_or_path)]
+
+    def load(self, name_or_path: str | Path) -> Instrument:
+        """A known instrument by name or alias, or one described by a YAML file path. Cached per file
+        and modification time; treat the result as read-only."""
+        p = self.path(name_or_path).resolve()
+        return _load_cached(str(p), p.stat().st_mtime)
+
+    def _known(self) -> dict[str, tuple[Path, str]]:
+        out: dict[str, tuple[Path, str]] = {}
+        builtin: set[str] = set()
+        for user, f in ([(False, f) for f in sorted((configs_dir() / "instruments").glob("*.yaml"))]
+                        + [(True, f) for f in self.user_files()]):
+            try:
+                doc = yaml.safe_load(f.read_text())
+            except (OSError, yaml.YAMLError) as e:
+                raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
+            if not isinstance(doc, dict):
+                raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
+            name, aliases = _checked_names(doc, f)
+            for key in [name, *aliases]:
+                if not user:
+                    out[key] = (f, name)
+                    builtin.add(key)
+                elif key in builtin and out[key][0].resolve() != f.resolve():
+                    raise InstrumentError(f"{f}: {key!r} is the built-in instrument described in {out[key][0]}; "
+                                          "give your instrument another name and aliases")
+                else:
+                    out.setdefault(key, (f, name))
+        return out
+
+
+#: The built-in instruments only: what library calls use when given no registry.
+BUILTIN = InstrumentRegistry()
 
 
 def _checked_names(doc: dict, where: Path) -> tuple[str, list[str]]:
@@ -173,42 +257,14 @@ def _checked_names(doc: dict, where: Path) -> tuple[str, list[str]]:
     return doc["name"], aliases
 
 
-def _known() -> dict[str, tuple[Path, str]]:
-    """Name or alias -> (description file, instrument name), as :func:`instrument_files` documents."""
-    out: dict[str, tuple[Path, str]] = {}
-    builtin: set[str] = set()
-    for user, f in ([(False, f) for f in sorted((configs_dir() / "instruments").glob("*.yaml"))]
-                    + [(True, f) for f in user_instrument_files()]):
-        try:
-            doc = yaml.safe_load(f.read_text())
-        except (OSError, yaml.YAMLError) as e:
-            raise InstrumentError(f"{f}: cannot read instrument description: {yaml_problem(e)}") from None
-        if not isinstance(doc, dict):
-            raise InstrumentError(f"{f}: an instrument description needs 'name' and a list of 'parts'")
-        name, aliases = _checked_names(doc, f)
-        for key in [name, *aliases]:
-            if not user:
-                out[key] = (f, name)
-                builtin.add(key)
-            elif key in builtin and out[key][0].resolve() != f.resolve():
-                raise InstrumentError(f"{f}: {key!r} is the built-in instrument described in {out[key][0]}; "
-                                      "give your instrument another name and aliases")
-            else:
-                out.setdefault(key, (f, name))
-    return out
+def instrument_files(registry: InstrumentRegistry = BUILTIN) -> dict[str, Path]:
+    """:meth:`InstrumentRegistry.files` of ``registry`` (default: the built-in instruments)."""
+    return registry.files()
 
 
-def instrument_files() -> dict[str, Path]:
-    """Known instrument descriptions, keyed by name and by alias: the built-in ones
-    (``configs/instruments``) and the user's (:func:`user_instrument_files`; where two of those claim a
-    name, the first listed wins). A user's description may not claim a built-in name or alias: that
-    raises :class:`InstrumentError` naming both files."""
-    return {key: f for key, (f, _) in _known().items()}
-
-
-def list_instruments() -> list[str]:
-    """Names (not aliases) of the known instruments (built-in and ``$SURFTRACK_INSTRUMENTS``)."""
-    return sorted({name for _, name in _known().values()})
+def list_instruments(registry: InstrumentRegistry = BUILTIN) -> list[str]:
+    """:meth:`InstrumentRegistry.names` of ``registry`` (default: the built-in instruments)."""
+    return registry.names()
 
 
 @lru_cache(maxsize=32)
@@ -216,26 +272,11 @@ def _load_cached(path: str, mtime: float) -> Instrument:
     return load_instrument_file(path)
 
 
-def load_instrument(name_or_path: str | Path) -> Instrument:
-    """A known instrument by name or alias (``lnd``; built-in or from ``$SURFTRACK_INSTRUMENTS``), or one
-    described by a YAML file path.
-
-    Instruments are cached per file and modification time; treat the result as read-only.
-    """
-    p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml"):
-        if not p.is_file():
-            raise InstrumentError(f"{p}: instrument description not found")
-    else:
-        files = instrument_files()
-        if str(name_or_path) not in files:
-            raise InstrumentError(f"unknown instrument {str(name_or_path)!r}; known: {', '.join(sorted(files))} "
-                                  f"(give its YAML file, or list it in ${INSTRUMENTS_ENV})")
-        p = files[str(name_or_path)]
-    p = p.resolve()
-    return _load_cached(str(p), p.stat().st_mtime)
+def load_instrument(name_or_path: str | Path, registry: InstrumentRegistry = BUILTIN) -> Instrument:
+    """A known instrument by name or alias (``lnd``) in ``registry`` (default: the built-in ones), or one
+    described by a YAML file path; see :meth:`InstrumentRegistry.load`."""
+    return registry.load(name_or_path)
 
 
-__all__ = ["Attachment", "Instrument", "InstrumentError", "JOINT_NAMES", "load_instrument",
-           "load_instrument_file", "list_instruments", "instrument_files", "user_instrument_files",
-           "INSTRUMENTS_ENV"]
+__all__ = ["BUILTIN", "Attachment", "Instrument", "InstrumentError", "InstrumentRegistry", "JOINT_NAMES",
+           "load_instrument", "load_instrument_file", "list_instruments", "instrument_files", "INSTRUMENTS_ENV"]

@@ -42,6 +42,7 @@ import numpy as np
 
 from surftrack.eval import add, adds, auc, diameter_bbox_diagonal, diameter_max_pairwise, re, te
 from surftrack.geometry import box_from_bop
+from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.jsonsafe import json_safe
 from surftrack.pose.kinematic import (
     KinematicConfig,
@@ -165,7 +166,7 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
              occlusion_threshold: float = 0.9, *, device=None, images_per_batch: int = 4,
              min_visib_fract: float = 0.1, min_px_visib: int = 64, max_points: int = 5000,
              images: Iterable[tuple[int, int]] | None = None, progress: bool = False,
-             kinematic=None) -> dict:
+             kinematic=None, instruments: InstrumentRegistry = BUILTIN) -> dict:
     """Run the estimator (a checkpoint path or a :class:`PoseEstimator`) on the split ``split`` of the BOP
     dataset ``data_dir`` with ground-truth boxes and return the JSON-ready result:
 
@@ -180,7 +181,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     instrument-consistent poses of :func:`surftrack.pose.kinematic.apply_kinematics` instead of the raw
     per-part ones; the parts of an image are grouped by the ground truth's ``instrument_index`` (our
     generated data). Without it they are grouped by instrument name, which assumes one instance of each
-    instrument per image (as in SurgRIPE); images that repeat an object are then not fitted. Instances
+    instrument per image (as in SurgRIPE); images that repeat an object are then not fitted.
+    ``instruments``: where the fit finds the instruments' descriptions. Instances
     are those kept by
     :class:`BopDataset` with ``min_visib_fract`` / ``min_px_visib`` (BOP's 10 % visibility rule by default)
     whose object the model knows (others are counted in ``skipped_unknown_obj``). Raises
@@ -188,7 +190,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     :class:`surftrack.model.checkpoint.CheckpointError` (bad checkpoint)."""
     return _evaluate(checkpoint, data_dir, split, preset, max_images, occlusion_threshold, device=device,
                      images_per_batch=images_per_batch, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib,
-                     max_points=max_points, images=images, progress=progress, kinematic=kinematic)[0]
+                     max_points=max_points, images=images, progress=progress, kinematic=kinematic,
+                     instruments=instruments)[0]
 
 
 def evaluate_seeds(checkpoint, data_dir, seeds: Sequence[int], **kwargs) -> list[dict]:
@@ -206,7 +209,8 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
               occlusion_threshold: float = 0.9, *, device=None, images_per_batch: int = 4,
               min_visib_fract: float = 0.1, min_px_visib: int = 64, max_points: int = 5000,
               images: Iterable[tuple[int, int]] | None = None, progress: bool = False,
-              kinematic=None, seeds: Sequence[int] | None = None) -> list[dict]:
+              kinematic=None, seeds: Sequence[int] | None = None,
+              instruments: InstrumentRegistry = BUILTIN) -> list[dict]:
     """:func:`evaluate` / :func:`evaluate_seeds`: one result per seed (the preset's when ``seeds`` is None,
     through :meth:`PoseEstimator.estimate_batch`)."""
     from surftrack.data.bop import BopDataset, DatasetError
@@ -227,7 +231,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
     warn: list[str] = []
     fitted: list[str] = []
     for name, hashes in sorted(part_hashes(est.model.parts).items()) if kinematic else []:
-        inst, why = described_instrument(name, hashes, caller_reports=True)
+        inst, why = described_instrument(name, hashes, caller_reports=True, registry=instruments)
         if inst is None:
             warn.append(f"{why}: its parts are evaluated on their per-part poses")
         else:
@@ -289,7 +293,8 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         for sd, poses in zip(seeds, by_seed):
             t0 = time.perf_counter()
             if kinematic:  # timed with the estimator: it is part of what the tracker outputs
-                poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic)
+                poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic,
+                                          instruments)
                          for k, pl in zip(chunk, poses)]
             kin_s = time.perf_counter() - t0
             for k, plist in zip(chunk, poses):

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import warnings
 from collections import defaultdict
 from collections.abc import Hashable, Mapping, Sequence
@@ -36,13 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from surftrack.instruments import (
-    INSTRUMENTS_ENV,
+    BUILTIN,
     FitConfig,
     Instrument,
     InstrumentError,
+    InstrumentRegistry,
     JointFit,
     fit_configuration,
-    load_instrument,
 )
 
 
@@ -85,27 +84,26 @@ def check_anchor(config: KinematicConfig, model_parts: Sequence) -> None:
                          f"{', '.join(names)}); name one of them, or turn the kinematic fit off")
 
 
-_instruments: dict[str, tuple[Instrument | None, str]] = {}
+_instruments: dict[tuple, tuple[Instrument | None, str]] = {}
 _warned: set[str] = set()
 
 
 def described_instrument(name: str, part_hashes: Mapping[str, str] | None = None,
-                         caller_reports: bool = False) -> tuple[Instrument | None, str]:
-    """(instrument, "") for the known instrument ``name`` (built-in, or described in
-    ``$SURFTRACK_INSTRUMENTS``) when its parts' meshes are those the model was trained on (``part_hashes``:
-    part name -> mesh SHA-256, from the checkpoint); else (None, why not): unknown, or other meshes, so no
-    kinematic model applies. ``caller_reports``: the caller tells the user why, so
-    :func:`kinematic_instrument` does not warn about it. Cached per process, search path and hashes (edit
-    a description, restart)."""
-    key = "|".join([name, os.environ.get(INSTRUMENTS_ENV, ""),
-                    ",".join(f"{k}={v}" for k, v in sorted((part_hashes or {}).items()))])
+                         caller_reports: bool = False,
+                         registry: InstrumentRegistry = BUILTIN) -> tuple[Instrument | None, str]:
+    """(instrument, "") for the instrument ``name`` known to ``registry`` when its parts' meshes are those
+    the model was trained on (``part_hashes``: part name -> mesh SHA-256, from the checkpoint); else (None,
+    why not): unknown, or other meshes, so no kinematic model applies. ``caller_reports``: the caller tells
+    the user why, so :func:`kinematic_instrument` does not warn about it. Cached per process, registry and
+    hashes (edit a description, restart)."""
+    key = (name, registry, tuple(sorted((part_hashes or {}).items())))
     if key not in _instruments:
         try:
-            inst: Instrument | None = load_instrument(name)
+            inst: Instrument | None = registry.load(name)
             why = ""
         except InstrumentError:
             inst, why = None, (f"instrument {name!r} has no description (built-in, or its YAML passed with "
-                               f"--instrument or listed in ${INSTRUMENTS_ENV})")
+                               f"--instrument or listed in $SURFTRACK_INSTRUMENTS)")
         if inst is not None:
             bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]
             if bad:
@@ -126,10 +124,11 @@ def part_hashes(model_parts: Sequence) -> dict[str, dict[str, str]]:
     return dict(out)
 
 
-def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None) -> Instrument | None:
+def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None,
+                         registry: InstrumentRegistry = BUILTIN) -> Instrument | None:
     """:func:`described_instrument`'s instrument; None with one warning (per process and cause) when
     there is none, so its parts keep their per-part poses."""
-    inst, why = described_instrument(name, part_hashes)
+    inst, why = described_instrument(name, part_hashes, registry=registry)
     if inst is None and why not in _warned:
         _warned.add(why)
         warnings.warn(f"{why}: its parts keep their per-part poses", stacklevel=2)
@@ -153,12 +152,12 @@ def consistent_poses(instrument: Instrument, observed: Mapping[str, tuple[np.nda
 
 
 def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts: Sequence,
-                     config: KinematicConfig | None = None) -> list:
+                     config: KinematicConfig | None = None, registry: InstrumentRegistry = BUILTIN) -> list:
     """Replace each :class:`PartPose` in ``results`` (one frame) by its instrument-consistent pose.
 
     ``groups[i]``: the instrument instance ``results[i]`` belongs to (parts of one instrument with the same
     key are fitted together). ``model_parts``: the model's :class:`PartInfo` list (``model.parts``), whose
-    mesh hashes must match the instrument description's.
+    mesh hashes must match the instrument description's (found in ``registry``).
     A group is fitted only when its anchor part (``config.anchor``) was estimated and seen (score > 0:
     some pixel supports its pose; a score <= 0 anchor is the network seeing nothing of it, and the tracker
     drops such a part rather than trust it). Every part of a fitted group takes its fitted pose, the anchor
@@ -177,7 +176,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
         parts = [results[i].part for i in idx]
         if len(idx) < 2 or len(set(parts)) != len(parts):
             continue
-        inst = kinematic_instrument(name, hashes.get(name))
+        inst = kinematic_instrument(name, hashes.get(name), registry)
         if inst is None:
             continue
         obs = {results[i].part: (results[i].R, results[i].t, results[i].score) for i in idx if results[i].ok}

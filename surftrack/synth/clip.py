@@ -41,7 +41,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 
 from surftrack.geometry import PinholeCamera, box_from_bop, so3_exp, transform_points
-from surftrack.instruments import Instrument, JointState, assign_obj_ids, load_instrument, rcm_base_pose
+from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, JointState, assign_obj_ids, rcm_base_pose
 from surftrack.io.video import VideoWriter  # a leaf module: the one import of a later stage (see surftrack.io)
 from surftrack.render import Renderer, add_instrument
 from surftrack.synth.bop_writer import bbox_xywh
@@ -538,9 +538,10 @@ def _sample_scene(camera: PinholeCamera, renderer: Renderer, seed: int):
 
 
 def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = ClipConfig(), seed: int = 0,
-              progress: bool = False) -> dict:
-    """Render a synthetic clip of ``instrument`` (name, alias or YAML path) into ``out_dir``: ``video.mp4``,
-    ``camera.json``, ``gt.json`` and ``det.json`` (see the module docstring and docs/formats.md).
+              progress: bool = False, instruments: InstrumentRegistry = BUILTIN) -> dict:
+    """Render a synthetic clip of ``instrument`` (name or alias known to ``instruments``, or a YAML path)
+    into ``out_dir``: ``video.mp4``, ``camera.json``, ``gt.json`` and ``det.json`` (see the module
+    docstring and docs/formats.md).
 
     Returns a summary: the file paths, frame count, fps, visible-frame count per part (keyed
     ``"<instrument_index>:<instrument>/<part>"``), how many frames have the main tool's wrist and jaws
@@ -553,8 +554,8 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    main = load_instrument(instrument)
-    second = load_instrument(cfg.second_instrument) if cfg.second_instrument else None
+    main = instruments.load(instrument)
+    second = instruments.load(cfg.second_instrument) if cfg.second_instrument else None
     instruments = [main] + ([second] if second is not None else [])
     noise, effects = cfg.noise(), cfg.camera_effects()
     W, H, n, fps = cfg.width, cfg.height, cfg.n_frames, float(cfg.fps)

@@ -18,7 +18,7 @@ import numpy as np
 from surftrack import __version__
 from surftrack.configio import build_dataclass
 from surftrack.geometry import PinholeCamera
-from surftrack.instruments import Instrument, assign_obj_ids, export_bop_models, load_instrument
+from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, assign_obj_ids, export_bop_models
 from surftrack.render import Renderer, add_instrument, gl_context, worker_context
 from surftrack.synth import bop_writer
 from surftrack.synth.checks import PartCollision, TissueCollision, in_view
@@ -51,9 +51,9 @@ class ImageStats:
 class SceneGenerator:
     """Per-process state: instruments, renderer (one GL context per process), collision checkers."""
 
-    def __init__(self, cfg: SynthConfig, seed: int, out_dir: Path):
+    def __init__(self, cfg: SynthConfig, seed: int, out_dir: Path, instruments: InstrumentRegistry = BUILTIN):
         self.cfg, self.seed, self.out = cfg, seed, Path(out_dir)
-        self.instruments = {i.name: i for i in load_instruments(cfg)}
+        self.instruments = {i.name: i for i in load_instruments(cfg, instruments)}
         self.names = list(self.instruments)
         self.obj_ids = {(inst.name, p): oid for oid, (inst, p) in
                         assign_obj_ids(list(self.instruments.values())).items()}
@@ -187,9 +187,9 @@ class SceneGenerator:
                                cfg.output.depth_scale)
 
 
-def load_instruments(cfg: SynthConfig) -> list[Instrument]:
-    """The configured instruments (names, aliases or YAML paths), each once."""
-    insts = [load_instrument(n) for n in cfg.instruments]
+def load_instruments(cfg: SynthConfig, registry: InstrumentRegistry = BUILTIN) -> list[Instrument]:
+    """The configured instruments (names or aliases known to ``registry``, or YAML paths), each once."""
+    insts = [registry.load(n) for n in cfg.instruments]
     names = [i.name for i in insts]
     if len(set(names)) != len(names):
         raise ConfigError(f"instruments {list(cfg.instruments)} name the same instrument twice ({names})")
@@ -232,9 +232,9 @@ def _comparable(config) -> object:
 _GEN: SceneGenerator | None = None
 
 
-def _init_worker(cfg: SynthConfig, seed: int, out_dir: str) -> None:
+def _init_worker(cfg: SynthConfig, seed: int, out_dir: str, registry: InstrumentRegistry) -> None:
     global _GEN
-    _GEN = SceneGenerator(cfg, seed, Path(out_dir))
+    _GEN = SceneGenerator(cfg, seed, Path(out_dir), registry)
 
 
 def _run_task(task: tuple[int, list[int]]) -> list[ImageStats]:
@@ -273,8 +273,9 @@ class GenerationReport:
 
 
 def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed: int = 0, workers: int = 1,
-                     progress: bool = True) -> GenerationReport:
+                     progress: bool = True, instruments: InstrumentRegistry = BUILTIN) -> GenerationReport:
     """Generate (or resume) a BOP dataset of ``n_images`` images in ``out_dir``; see the module docstring.
+    ``instruments``: where the config's instrument names are looked up.
 
     Finalises every touched scene and writes ``models/``, ``dataset_card.json`` and a contact sheet, also
     when interrupted.
@@ -283,10 +284,10 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    instruments = load_instruments(cfg)
+    insts = load_instruments(cfg, instruments)
     _check_resume(out, cfg, seed)
     gl_context()  # fail here, with a clear error, rather than in workers that a pool would respawn forever
-    export_bop_models(instruments, out / "models")
+    export_bop_models(insts, out / "models")
     tasks = plan_tasks(cfg, out, n_images)
     todo = sum(len(ids) for _, ids in tasks)
     stats: list[ImageStats] = []
@@ -294,13 +295,14 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
     bar = tqdm(total=todo, desc="synth", unit="img", disable=not progress)
     try:
         if workers <= 1:
-            _init_worker(cfg, seed, str(out))
+            _init_worker(cfg, seed, str(out), instruments)
             for task in tasks:
                 res = _run_task(task)
                 stats += res
                 bar.update(len(res))
         elif tasks:
-            with worker_context().Pool(workers, initializer=_init_worker, initargs=(cfg, seed, str(out))) as pool:
+            with worker_context().Pool(workers, initializer=_init_worker,
+                                       initargs=(cfg, seed, str(out), instruments)) as pool:
                 for res in pool.imap_unordered(_run_task, tasks):
                     stats += res
                     bar.update(len(res))
@@ -312,7 +314,7 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
             if bop_writer.scene_dir(out, cfg.output.split, s).is_dir():
                 bop_writer.finalize_scene(out, cfg.output.split, s)
         report = _report(stats, n_images, todo, time.perf_counter() - t0)
-        write_dataset_card(out, cfg, seed, instruments, report)
+        write_dataset_card(out, cfg, seed, insts, report)
         from surftrack.synth.contact_sheet import write_contact_sheet
 
         write_contact_sheet(out, cfg.output.split)

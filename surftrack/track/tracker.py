@@ -30,6 +30,7 @@ import numpy as np
 import trimesh
 
 from surftrack.geometry import Box, project_points, se3, transform_points
+from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.pose import PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor
 from surftrack.track.config import TrackConfig, TrackConfigError
@@ -138,12 +139,14 @@ class Tracker:
     """Tracks the parts ``specs`` through a video, one :meth:`step` per frame.
 
     ``estimator``: a :class:`PoseEstimator` whose model knows every spec's ``obj_id``. ``K``: the
-    intrinsics (undistorted frames), ``image_size``: (W, H).
+    intrinsics (undistorted frames), ``image_size``: (W, H). ``instruments``: where the kinematic fit
+    finds the instruments' descriptions.
     """
 
     def __init__(self, estimator: PoseEstimator, K: np.ndarray, image_size: tuple[int, int],
-                 specs: Sequence[PartSpec], cfg: TrackConfig | None = None):
-        self.estimator, self.cfg = estimator, cfg or TrackConfig()
+                 specs: Sequence[PartSpec], cfg: TrackConfig | None = None,
+                 instruments: InstrumentRegistry = BUILTIN):
+        self.estimator, self.cfg, self.instruments = estimator, cfg or TrackConfig(), instruments
         self.K = np.asarray(K, np.float64)
         self.size = (int(image_size[0]), int(image_size[1]))
         self.tracks = [_Track(s, self.cfg) for s in specs]
@@ -302,7 +305,7 @@ class Tracker:
                                               priors=[p for _, _, p, _ in requests])
             if self._kinematic is not None:
                 results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
-                                           self.estimator.model.parts, self._kinematic)
+                                           self.estimator.model.parts, self._kinematic, self.instruments)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
