@@ -9,7 +9,7 @@ Input format (plain dicts, as in COCO json files; keypoints in pixels, COCO layo
 
 - ground truth: ``{"image_id", "keypoints", "area", "bbox", ["category_id"=1], ["iscrowd"=0],
   ["num_keypoints"]}``. ``area`` is the scale ``s^2`` of the OKS (pixels^2); when absent the box area
-  ``w * h`` of ``bbox = [x, y, w, h]`` is used (the SurfSurg6D convention, see docs/notes.md).
+  ``w * h`` of ``bbox = [x, y, w, h]`` is used (the SurfSurg6D convention).
   ``num_keypoints`` defaults to the number of labelled keypoints (``v > 0``); a GT with none is ignored,
   as COCO does. ``bbox`` is only required for such GTs (COCO's distance-to-enlarged-box OKS).
 - detections: ``{"image_id", "keypoints", "score", ["category_id"=1]}``; the visibility entries of

@@ -1,6 +1,6 @@
 """Training losses of SurfEmb and SurfSurg6D (plain torch).
 
-Equation numbers are those of the compiled paper ``shared/seed/SurfSurg6D-paper.tex`` (Shen et al.,
+Equation numbers are those of the SurfSurg6D paper (Shen et al.,
 *SurfSurg6D: Geometry Consistent Dense Correspondence for Textureless Surgical Instrument Pose
 Estimation*); its own text confirms them ("Compared to Eq.5 [the baseline] ... the penalized one in Eq.7"):
 
@@ -13,7 +13,7 @@ Estimation*); its own text confirms them ("Compared to Eq.5 [the baseline] ... t
 * Eq. 8/9 -- geometry-embedding consistency with ``w_ij = max(m, exp(-lambda d_ij))`` -> :func:`consistency_loss`
 * Eq. 10 -- ``L(alpha, beta) = L_penNCE(alpha) + L_M + beta * L_con``            -> :func:`surfsurg6d_loss`
 
-Conventions (see ``docs/notes.md`` section 1): logits are RAW dot products -- no L2 normalisation and no
+Conventions: logits are RAW dot products -- no L2 normalisation and no
 temperature (SurfEmb; the query norm acts as a confidence). Surface coordinates are NORMALISED object
 coordinates ``(p - centre) / radius`` of the mesh's bounding sphere, so they lie in the unit ball and every
 pairwise distance is ``<= 2``.

@@ -13,11 +13,11 @@ from surftrack.pose.correspondence import CorrField, build_field, grid_camera, p
 from surftrack.pose.evaluate import evaluate, evaluate_seeds, markdown_table, seed_table, summarize, write_eval_outputs
 from surftrack.pose.estimator import PartPose, PoseEstimator
 from surftrack.pose.p3p import p3p, p4p, solve_quartic
-from surftrack.pose.preset import PRESETS, Preset, Presets, get_preset
+from surftrack.pose.preset import PRESETS, Preset, get_preset
 from surftrack.pose.solver import Solution, solve_field
 from surftrack.pose.surface import SurfaceBank, clear_bank_cache, part_bank
 
-__all__ = ["CorrField", "PRESETS", "PartPose", "PoseEstimator", "Preset", "Presets", "Solution", "SurfaceBank",
+__all__ = ["CorrField", "PRESETS", "PartPose", "PoseEstimator", "Preset", "Solution", "SurfaceBank",
            "build_field", "clear_bank_cache", "evaluate", "evaluate_seeds", "get_preset", "grid_camera",
            "markdown_table", "p3p", "p4p", "part_bank", "pool_to_grid", "seed_table", "solve_field", "solve_quartic",
            "summarize", "write_eval_outputs"]

@@ -85,9 +85,6 @@ PRESETS: dict[str, Preset] = {
 }
 
 
-Presets = Preset  # the name used in the design notes
-
-
 def get_preset(preset: str | Preset) -> Preset:
     if isinstance(preset, Preset):
         return preset
