@@ -162,6 +162,15 @@ def _video_frames(path: Path):
         yield item
 
 
+def _frames_to_read(info, end: float | None) -> int | None:
+    """Frames the progress bar counts (those before ``--start`` included): up to ``end`` seconds, or the
+    container's frame count; None when unknown."""
+    if end is not None and info.fps > 0:
+        upto = int(end * info.fps + 1e-6) + 1
+        return min(upto, info.frames) if info.frames else upto
+    return info.frames or None
+
+
 def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Path, opts: AnnotateOptions,
                    size: tuple[int, int], specs: list[PartSpec]) -> None:
     """Refuse, before any file is opened, outputs that would overwrite an input or one another, and
@@ -219,6 +228,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     cam = load_camera(camera, size)
     if opts.start is not None and opts.end is not None and opts.end <= opts.start:
         raise InputError(f"--end {opts.end} must be after --start {opts.start}")
+    if opts.start is not None and info.duration_s and opts.start >= info.duration_s:
+        raise InputError(f"{video}: --start {opts.start:g} s is past the end of the video ({info.duration_s:.2f} s)")
     model_path = Path(opts.model) if opts.model is not None else default_model_path()
     if not model_path.is_file():
         raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
@@ -262,6 +273,13 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                                 for s in specs if s.instrument == inst})
     from tqdm import tqdm
 
+    outputs = {"mcap": str(out)}
+    if opts.overlay is not None:
+        outputs["overlay"] = str(opts.overlay)
+    if opts.export_tum is not None:
+        outputs["tum"] = str(opts.export_tum)
+    if opts.joints_csv is not None:
+        outputs["joints_csv"] = str(opts.joints_csv)
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
         writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
         if opts.overlay is not None:
@@ -276,7 +294,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             from surftrack.io.joints_csv import JointCsvWriter
 
             joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
-        bar = tqdm(total=info.frames or None, unit="frame", desc=video.name, disable=not opts.progress)
+        bar = tqdm(total=_frames_to_read(info, opts.end), unit="frame", desc=video.name,
+                   disable=not opts.progress)
         wall0 = time.perf_counter()
         index, read_to_end = -1, False
         shown: set[str] = set()  # parts whose mesh is in the 3D scene
@@ -339,13 +358,17 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     writer.joint_states(t_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
                     if joints_csv is not None:
                         joints_csv.add(t_s, label, fit)
+                n_done += 1  # its outputs are written: counted even when on_frame stops the run
                 if on_frame is not None:
                     on_frame(index, t_s, states)
-                n_done += 1
                 bar.update(1)
                 bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
             else:
                 read_to_end = True
+        except KeyboardInterrupt as e:  # Ctrl-C or a stop signal: the outputs close as it unwinds
+            e.outputs = list(outputs.values())
+            e.frames_done = n_done
+            raise
         finally:
             bar.close()
             wall = time.perf_counter() - wall0
@@ -356,13 +379,6 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         notes.append(f"{boxes}: boxes for {len(beyond)} frame(s) after the video's last frame ({index}), from "
                      f"{beyond[0]}: frames are numbered from 0; were these numbered from 1, or made for "
                      f"another video?")
-    outputs = {"mcap": str(out)}
-    if opts.overlay is not None:
-        outputs["overlay"] = str(opts.overlay)
-    if opts.export_tum is not None:
-        outputs["tum"] = str(opts.export_tum)
-    if opts.joints_csv is not None:
-        outputs["joints_csv"] = str(opts.joints_csv)
     return {"video": str(video), "frames": n_done, "seconds": wall, "fps": n_done / max(wall, 1e-9),
             "track_ms_per_frame": 1e3 * timing["track_s"] / n_done,
             "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes,

@@ -7,8 +7,12 @@ The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAM
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -24,6 +28,41 @@ PRESET_NAMES = ("accurate", "fast", "thorough")
 
 class CLIError(Exception):
     """A user-facing error: printed as one line, exit code 2."""
+
+
+class Stopped(KeyboardInterrupt):
+    """A run stopped by SIGTERM or SIGHUP. A KeyboardInterrupt, so that it unwinds exactly as Ctrl-C
+    does and every output is finalised on the way out; the exit code is 128 + ``signum``."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+#: The signals that stop a run cleanly: what ``timeout``, ``kill``, docker, systemd and SLURM send
+#: (SIGTERM) and what a closed terminal or SSH session sends (SIGHUP). SIGINT is Python's own.
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[None]:
+    """Turn SIGTERM and SIGHUP into :class:`Stopped` while the command runs. After the first one, further
+    stop signals (and Ctrl-C) are ignored, so that finalising the outputs cannot itself be cut short."""
+
+    def stop(signum, frame):
+        for s in (*STOP_SIGNALS, signal.SIGINT):
+            signal.signal(s, signal.SIG_IGN)
+        raise Stopped(signum)
+
+    if threading.current_thread() is not threading.main_thread():  # only the main thread takes signals
+        yield
+        return
+    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _seed(text: str) -> int:
@@ -392,8 +431,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv and not argv[0].startswith("-") and argv[0] not in commands:
         argv.insert(0, "track")  # `surftrack VIDEO --boxes ...` is the main command
     args = parser.parse_args(argv)
+    sigint = signal.getsignal(signal.SIGINT)  # a stop signal sets it to SIG_IGN while outputs are finalised
     try:
-        return int(args.func(args))
+        with _stop_on_signals():
+            return int(args.func(args))
     except BrokenPipeError:  # `surftrack ... | head`: the reader left; say nothing more
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
@@ -401,9 +442,16 @@ def main(argv: list[str] | None = None) -> int:
         lines = [line.strip() for line in str(e).splitlines() if line.strip()]
         print(f"surftrack: error: {'; '.join(lines)}", file=sys.stderr)  # one line, whatever raised it
         return 2
-    except KeyboardInterrupt:
-        print("surftrack: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP as Stopped
+        signum = getattr(e, "signum", signal.SIGINT)
+        done, frames = getattr(e, "outputs", None), getattr(e, "frames_done", None)
+        print(f"surftrack: stopped by {signal.Signals(signum).name}"
+              + (f" after {frames} frames" if frames is not None else "")
+              + (f"; finalised {', '.join(map(str, done))}" if done else ""), file=sys.stderr)
+        return 128 + signum
+    finally:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, sigint)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ identities (ids, names, meshes, mesh hashes, normalisation) and, for resuming, t
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -74,8 +75,13 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
         raise CheckpointError(f"{path}: checkpoint not found")
     try:  # weights_only: a checkpoint holds tensors and plain values, never code
         blob = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:  # torch's own message advises loading code from the file: never relay it
+        raise CheckpointError(f"{path}: not a surftrack checkpoint (not a file of tensors and plain values, as "
+                              f"`surftrack train` writes; surftrack never loads code from a model file)") from None
     except Exception as e:  # torch raises several types for corrupt files
-        raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}: {e})") from None
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}"
+                              f"{': ' + first if first else ''})") from None
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a surftrack SurfSurg6D checkpoint")
     try:

@@ -202,6 +202,7 @@ class VideoInfo:
     height: int
     fps: float
     frames: int  # 0 when the container does not say
+    duration_s: float = 0.0  # the container's duration; 0 when it does not say
 
 
 def probe_video(path: str | Path) -> VideoInfo:
@@ -218,7 +219,11 @@ def probe_video(path: str | Path) -> VideoInfo:
             if frame is None:
                 raise InputError(f"{path}: contains no decodable video frame")
             fps = float(s.average_rate or s.guessed_rate or 0) or 30.0
-            return VideoInfo(path, frame.width, frame.height, fps, int(s.frames or 0))
+            if c.duration:
+                duration = c.duration / av.time_base
+            else:
+                duration = float(s.duration * s.time_base) if s.duration and s.time_base else 0.0
+            return VideoInfo(path, frame.width, frame.height, fps, int(s.frames or 0), float(duration))
     except InputError:
         raise
     except (av.FFmpegError, OSError, StopIteration) as e:
