@@ -1,7 +1,8 @@
 """The ``surftrack`` command line.
 
 The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAMERA.json`` (the same as
-``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, join, train, eval, analyze.
+``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, join, train, eval, analyze,
+recover.
 """
 
 from __future__ import annotations
@@ -299,6 +300,20 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_recover(args: argparse.Namespace) -> int:
+    from surftrack.io.recover import recover_mcap
+
+    try:
+        r = recover_mcap(args.mcap, args.out)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    span = (f", {r.start_ns / 1e9:.3f} s to {r.end_ns / 1e9:.3f} s" if r.messages else "")
+    print(f"surftrack recover: {r.messages} messages on {r.channels} channels{span}, from the first "
+          f"{r.bytes_read} bytes of {args.mcap}" + (f" ({r.stopped})" if r.stopped else " (the whole file)"))
+    print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="surftrack", description=__doc__)
     p.add_argument("--version", action="version", version=f"surftrack {__version__}")
@@ -407,6 +422,12 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("mcap", help="MCAP written by `surftrack VIDEO ...`")
     an.add_argument("--png", help="plot file (default: <mcap stem>.analysis.png)")
     an.set_defaults(func=_cmd_analyze)
+
+    rc = sub.add_parser("recover", help="rewrite an unfinished MCAP (a run killed by SIGKILL or a crash) into a "
+                                        "valid file with every readable message")
+    rc.add_argument("mcap", help="the unfinished MCAP file")
+    rc.add_argument("-o", "--out", required=True, help="the recovered MCAP file (a new file)")
+    rc.set_defaults(func=_cmd_recover)
     return p
 
 

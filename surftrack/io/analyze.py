@@ -27,6 +27,7 @@ from typing import Iterable
 
 import numpy as np
 from mcap.reader import make_reader
+from mcap.writer import MCAP0_MAGIC as MCAP_MAGIC
 
 __all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
 
@@ -51,7 +52,11 @@ def _read(path: Path) -> list[tuple[str, str, int, dict]]:
                             json.loads(message.data)))
     except Exception as e:  # mcap raises many types (bad magic, truncated records, CRC, zstd, JSON)
         why = " ".join(f"{type(e).__name__}: {e}".split())
-        raise ValueError(f"{path}: not a readable MCAP tracking log ({why})") from None
+        with open(path, "rb") as f:
+            unfinished = f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+        hint = (f"; if its run was cut off, `surftrack recover {path} -o FIXED.mcap` keeps every readable "
+                f"message" if unfinished else "")
+        raise ValueError(f"{path}: not a readable MCAP tracking log ({why}){hint}") from None
     return out
 
 
