@@ -146,8 +146,13 @@ def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
     return {"points": points, "texts": texts}
 
 
+class DecodeError(InputError):
+    """A video that stops decoding part of the way through (truncated or corrupt data)."""
+
+
 def _video_frames(path: Path):
-    """read_video_frames with opening and decoding failures (truncated, corrupt) as InputError."""
+    """read_video_frames with an opening failure as InputError and a decoding failure (truncated, corrupt)
+    as DecodeError."""
     try:
         it = read_video_frames(path)
     except ValueError as e:
@@ -158,7 +163,7 @@ def _video_frames(path: Path):
         except StopIteration:
             return
         except ValueError as e:
-            raise InputError(str(e)) from None
+            raise DecodeError(str(e)) from None
         yield item
 
 
@@ -207,7 +212,10 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
 def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
                    on_frame: Callable[[int, float, list[PartState]], None] | None = None) -> dict:
     """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
-    part, outputs). ``on_frame(index, time_s, states)`` is called after every processed frame."""
+    part, outputs; ``partial``: None, or for a video that stops decoding part of the way through, what was
+    tracked: ``frames_decoded``, ``frames_in_video`` (0 when the container does not say),
+    ``stopped_at_s`` (the last decoded frame's time) and ``error``). ``on_frame(index, time_s, states)``
+    is called after every processed frame."""
     from surftrack.io import TrackWriter
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
@@ -297,7 +305,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         bar = tqdm(total=_frames_to_read(info, opts.end), unit="frame", desc=video.name,
                    disable=not opts.progress)
         wall0 = time.perf_counter()
-        index, read_to_end = -1, False
+        index, read_to_end, partial = -1, False, None
         shown: set[str] = set()  # parts whose mesh is in the 3D scene
         try:
             frames = _video_frames(video)
@@ -365,6 +373,11 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                 bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
             else:
                 read_to_end = True
+        except DecodeError as e:  # keep what decoded: the outputs close normally and the summary says so
+            if n_done == 0:
+                raise
+            partial = {"frames_decoded": index + 1, "frames_in_video": info.frames, "stopped_at_s": last_t,
+                       "error": str(e)}
         except KeyboardInterrupt as e:  # Ctrl-C or a stop signal: the outputs close as it unwinds
             e.outputs = list(outputs.values())
             e.frames_done = n_done
@@ -379,7 +392,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         notes.append(f"{boxes}: boxes for {len(beyond)} frame(s) after the video's last frame ({index}), from "
                      f"{beyond[0]}: frames are numbered from 0; were these numbered from 1, or made for "
                      f"another video?")
-    return {"video": str(video), "frames": n_done, "seconds": wall, "fps": n_done / max(wall, 1e-9),
+    return {"video": str(video), "frames": n_done, "partial": partial, "seconds": wall, "fps": n_done / max(wall, 1e-9),
             "track_ms_per_frame": 1e3 * timing["track_s"] / n_done,
             "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes,
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}

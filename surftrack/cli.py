@@ -27,6 +27,11 @@ if TYPE_CHECKING:
 PRESET_NAMES = ("accurate", "fast", "thorough")
 
 
+#: Exit code of a run whose video stopped decoding part of the way through: what decoded is tracked and
+#: every output is finished (2: bad input, nothing tracked; 128 + N: stopped by signal N).
+EXIT_PARTIAL = 4
+
+
 class CLIError(Exception):
     """A user-facing error: printed as one line, exit code 2."""
 
@@ -261,6 +266,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     if len(jobs) > 1 and (args.overlay or args.export_tum or args.joints_csv):
         raise CLIError("--overlay, --export-tum and --joints-csv take one video; with a folder, run the videos "
                        "one by one")
+    code = 0
     for video, boxes, camera, out in jobs:
         opts = AnnotateOptions(model=_model(args), camera=camera, out=out, config=cfg, device=args.device,
                                start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
@@ -274,7 +280,12 @@ def _cmd_track(args: argparse.Namespace) -> int:
             fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
             print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
         print("wrote " + ", ".join(s["outputs"].values()))
-    return 0
+        if s["partial"]:
+            p = s["partial"]
+            print(f"surftrack: partial: {video}: {p['frames_decoded']} of {p['frames_in_video'] or '?'} frames, "
+                  f"decoding stopped at t = {p['stopped_at_s']:.3f} s ({p['error']})", file=sys.stderr)
+            code = EXIT_PARTIAL
+    return code
 
 
 def _cmd_join(args: argparse.Namespace) -> int:

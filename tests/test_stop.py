@@ -95,3 +95,41 @@ def test_progress_counts_frames_up_to_end():
     assert _frames_to_read(info, 50.0) == 1501  # frames at 0, 1/30, ..., 50 s
     assert _frames_to_read(info, 500.0) == 3000
     assert _frames_to_read(VideoInfo(Path("v.mp4"), 320, 256, 30.0, 0), None) is None
+
+
+def _cut_mdat(src: Path, dst: Path, keep: float) -> None:
+    """Copy an mp4 (moov after mdat, as PyAV writes it) keeping the first ``keep`` of its sample data: the
+    index still lists every frame, so decoding fails part of the way through, as in a damaged recording."""
+    import struct
+
+    data = src.read_bytes()
+    mdat, moov = data.find(b"mdat") - 4, data.find(b"moov") - 4
+    assert 0 <= mdat < moov, "expected mdat before moov"
+    cut = mdat + int((moov - mdat) * keep)
+    out = bytearray(data[:cut] + data[moov:])
+    out[mdat:mdat + 4] = struct.pack(">I", cut - mdat)
+    dst.write_bytes(bytes(out))
+
+
+def test_partially_decodable_video_is_tracked_as_far_as_it_decodes(clip, tiny_ckpt, tmp_path, capsys):
+    from mcap.reader import make_reader
+
+    from surftrack.cli import EXIT_PARTIAL
+    from surftrack.io.video import read_video_frames
+
+    video = tmp_path / "damaged.mp4"
+    _cut_mdat(clip / "video.mp4", video, 0.5)
+    with pytest.raises(ValueError, match="decoding failed"):
+        list(read_video_frames(video))
+    out = tmp_path / "x.mcap"
+    assert main(["track", str(video), "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"),
+                 "--model", str(tiny_ckpt), "-o", str(out), "--overlay", str(tmp_path / "x.mp4"), "--quiet"]) \
+        == EXIT_PARTIAL
+    cap = capsys.readouterr()
+    tracked = int(cap.out.split(f"{video}: ")[1].split(" frames")[0])
+    assert 0 < tracked < 15
+    assert cap.err.strip().startswith(f"surftrack: partial: {video}: {tracked} of 15 frames, decoding stopped "
+                                       f"at t = {(tracked - 1) / 10:.3f} s (")
+    with open(out, "rb") as f:
+        assert make_reader(f).get_summary().statistics.message_end_time == (tracked - 1) * 100_000_000
+    assert len(list(read_video_frames(tmp_path / "x.mp4"))) == tracked
