@@ -338,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=_cmd_demo)
     i = sub.add_parser("instruments", help="list instruments (parts, sizes) and export BOP models")
-    i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all built-in)")
+    i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all known, "
+                                           "built-in and from $SURFTRACK_INSTRUMENTS)")
     i.add_argument("--export", metavar="DIR", help="write a BOP models/ folder with models_info.json")
     i.set_defaults(func=_cmd_instruments)
     sy = sub.add_parser("synth", help="generate a SynSurg6D-style BOP dataset (resumable)")

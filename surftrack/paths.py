@@ -13,8 +13,12 @@ from pathlib import Path
 
 
 def _package_dir(package: str) -> Path:
-    """The folder of ``package`` on disk."""
-    return Path(str(resources.files(package)))
+    """The folder of ``package`` on disk. Run from a source tree that is not installed (``PYTHONPATH``),
+    the mapped packages do not exist: their folders are then the top-level ones beside ``surftrack/``."""
+    try:
+        return Path(str(resources.files(package)))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / package.rsplit(".", 1)[1]
 
 
 def configs_dir() -> Path:

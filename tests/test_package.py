@@ -4,13 +4,15 @@ bundled model, and the installed tool works from a directory outside the checkou
 from __future__ import annotations
 
 import os
+import site
 import subprocess
 import sys
 import sysconfig
 import tarfile
-import tomllib
 import venv
 from pathlib import Path
+
+import pytest
 
 import surftrack
 
@@ -20,6 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_every_subpackage_is_packaged():
     """pyproject.toml lists the packages explicitly (configs/ and models/ are mapped into the package):
     a new sub-package of surftrack must be listed, or a wheel would lack it."""
+    tomllib = pytest.importorskip("tomllib", reason="tomllib is in the standard library from Python 3.11")
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "surftrack").rglob("__init__.py")}
     assert found <= listed, f"add {sorted(found - listed)} to [tool.setuptools] packages in pyproject.toml"
@@ -36,19 +39,13 @@ def test_wheel_installed_outside_the_checkout(tmp_path):
     a fresh virtual environment and run the tool from another directory: every built-in instrument, the
     bundled model, the demo on a tiny clip and eval's help. The new environment borrows this one's
     dependencies through a .pth line (no network), not its surftrack."""
-    from setuptools import build_meta
-
     env = {k: v for k, v in os.environ.items() if not k.startswith("SURFTRACK_")}
     dist = tmp_path / "dist"
     dist.mkdir()
-    here = os.getcwd()
-    try:
-        os.chdir(ROOT)
-        sdist = dist / build_meta.build_sdist(str(dist))
-    finally:
-        os.chdir(here)
-    with tarfile.open(sdist) as tar:
-        tar.extractall(tmp_path / "src", filter="data")
+    name = _run([sys.executable, "-c", "import sys; from setuptools import build_meta; "
+                 "print(build_meta.build_sdist(sys.argv[1]))", str(dist)], ROOT, env).strip().splitlines()[-1]
+    with tarfile.open(dist / name) as tar:
+        tar.extractall(tmp_path / "src", **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
     src = next((tmp_path / "src").iterdir())
     _run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "--no-index",
           "-w", str(dist), str(src)], tmp_path, env)
@@ -57,9 +54,10 @@ def test_wheel_installed_outside_the_checkout(tmp_path):
     target = tmp_path / "venv"
     venv.create(target, with_pip=False)
     py = target / "bin" / "python"
-    site = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp_path, env)
+    site_dir = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp_path, env)
                 .strip())
-    (site / "borrowed_dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    here = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"], *site.getsitepackages()}
+    (site_dir / "borrowed_dependencies.pth").write_text("".join(f"{p}\n" for p in sorted(here)))
     _run([sys.executable, "-m", "pip", "--python", str(py), "install", "--quiet", "--no-deps", "--no-index",
           str(wheel)], tmp_path, env)
 
@@ -68,7 +66,7 @@ def test_wheel_installed_outside_the_checkout(tmp_path):
     tool = str(target / "bin" / "surftrack")
     where = _run([str(py), "-c", "import surftrack, surftrack.paths as p; print(surftrack.__file__); "
                   "print(p.default_model_path()); print(p.configs_dir())"], work, env).split()
-    assert all(Path(w).is_relative_to(site) for w in where), where  # the installed copy, not the checkout
+    assert all(Path(w).is_relative_to(site_dir) for w in where), where  # the installed copy, not the checkout
     assert _run([tool, "--version"], work, env).strip() == f"surftrack {surftrack.__version__}"
     listed = _run([tool, "instruments"], work, env)
     for name in ("large_needle_driver", "cadiere_forceps", "biopsy_forceps", "scissors",

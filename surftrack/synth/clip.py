@@ -556,18 +556,18 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
     out.mkdir(parents=True, exist_ok=True)
     main = instruments.load(instrument)
     second = instruments.load(cfg.second_instrument) if cfg.second_instrument else None
-    instruments = [main] + ([second] if second is not None else [])
+    tools = [main] + ([second] if second is not None else [])
     noise, effects = cfg.noise(), cfg.camera_effects()
     W, H, n, fps = cfg.width, cfg.height, cfg.n_frames, float(cfg.fps)
     camera = PinholeCamera.from_fov(W, H, cfg.hfov_deg)
 
     # Object ids (deduplicated when both tools are the same model) and det.json track ids (one per part
     # of each tool; "instance" counts tools of the same name).
-    unique = list({inst.name: inst for inst in instruments}.values())
+    unique = list({inst.name: inst for inst in tools}.values())
     obj_ids = {(inst.name, p): oid for oid, (inst, p) in assign_obj_ids(unique).items()}
     parts_doc, track_ids = {}, {}
-    for k, inst in enumerate(instruments):
-        instance = sum(o.name == inst.name for o in instruments[:k])
+    for k, inst in enumerate(tools):
+        instance = sum(o.name == inst.name for o in tools[:k])
         for p in inst.part_names:
             pid = len(parts_doc) + 1
             parts_doc[str(pid)] = {"instrument": inst.name, "instance": instance, "part": p}
@@ -577,8 +577,8 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
     try:
         tissue, tissue_pose, tid = _sample_scene(camera, renderer, seed)
         handles = []
-        for k, inst in enumerate(instruments):
-            like = next((h for h, o in zip(handles, instruments) if o.name == inst.name), None)
+        for k, inst in enumerate(tools):
+            like = next((h for h, o in zip(handles, tools) if o.name == inst.name), None)
             handles.append(add_instrument(renderer, inst, like=like))
         planner = _Planner(cfg, camera, tissue, tissue_pose, main, second, seed, renderer, handles)
         tracks, reasons = None, {}
@@ -599,7 +599,7 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
         frames_gt, det_frames, occluded = {}, [], 0
         sec_ids = (np.array(sorted(set(handles[1].parts.values()) | {i for _, i in handles[1].attachments}))
                    if len(handles) == 2 else None)
-        visible = {f"{k}:{inst.name}/{p}": 0 for k, inst in enumerate(instruments) for p in inst.part_names}
+        visible = {f"{k}:{inst.name}/{p}": 0 for k, inst in enumerate(tools) for p in inst.part_names}
         with VideoWriter(out / "video.mp4", fps, W, H, crf=cfg.crf) as writer:
             for i in tqdm(range(n), desc="clip", unit="frame", disable=not progress):
                 part_poses = [tr.poses(i) for tr in tracks]
@@ -658,7 +658,7 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
     return {
         "out_dir": str(out), "video": str(out / "video.mp4"), "camera": str(out / "camera.json"),
         "gt": str(out / "gt.json"), "det": str(out / "det.json"),
-        "frames": n, "fps": fps, "instruments": [inst.name for inst in instruments],
+        "frames": n, "fps": fps, "instruments": [inst.name for inst in tools],
         "visible_frames": visible, "main_out_of_view_frames": leave_out, "occluded_frames": occluded,
         "attempts": attempt, "plan_failures": reasons, "seconds": round(time.perf_counter() - t0, 2),
     }

@@ -196,7 +196,7 @@ def load_instruments(cfg: SynthConfig, registry: InstrumentRegistry = BUILTIN) -
     return insts
 
 
-def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
+def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRegistry = BUILTIN) -> None:
     """Refuse to add images made with another seed or configuration to an existing dataset."""
     card = out / "dataset_card.json"
     if not card.is_file():
@@ -210,20 +210,18 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int) -> None:
             made = build_dataclass(SynthConfig, dict(made), str(card), ConfigError).to_dict()
         except (TypeError, ValueError):  # ConfigError included
             pass
-    if old.get("seed") != seed or _comparable(made) != _comparable(cfg.to_dict()):
+    if old.get("seed") != seed or _comparable(made, registry) != _comparable(cfg.to_dict(), registry):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
 
 
-def _comparable(config) -> object:
-    """A config as JSON data, built-in instruments as their description files (``lnd`` and
+def _comparable(config, registry: InstrumentRegistry) -> object:
+    """A config as JSON data, instruments known to ``registry`` as their description files (``lnd`` and
     ``large_needle_driver`` name the same file and make the same images)."""
-    from surftrack.instruments.library import instrument_files
-
     data = json.loads(json.dumps(config))
     if isinstance(data, dict) and isinstance(data.get("instruments"), list):
-        builtin = instrument_files()
-        data["instruments"] = [str(builtin[n]) if isinstance(n, str) and n in builtin else n
+        known = registry.files()
+        data["instruments"] = [str(known[n]) if isinstance(n, str) and n in known else n
                                for n in data["instruments"]]
     return data
 
@@ -285,7 +283,7 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     insts = load_instruments(cfg, instruments)
-    _check_resume(out, cfg, seed)
+    _check_resume(out, cfg, seed, instruments)
     gl_context()  # fail here, with a clear error, rather than in workers that a pool would respawn forever
     export_bop_models(insts, out / "models")
     tasks = plan_tasks(cfg, out, n_images)
