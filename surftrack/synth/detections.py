@@ -34,14 +34,13 @@ import numpy as np
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
+from surftrack.geometry.boxes import Box
 from surftrack.paths import configs_dir
 
 FORMAT = "surftrack-detections"
 VERSION = 1
 SCHEMA_PATH = configs_dir() / "schemas" / "det.schema.json"
 BOX_TOLERANCE_PX = 1e-3  # how far a box may poke outside the image (rounding of written numbers)
-
-Box = tuple[float, float, float, float]
 
 
 @lru_cache(maxsize=None)
