@@ -210,12 +210,14 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
 
 
 def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
-                   on_frame: Callable[[int, float, list[PartState]], None] | None = None) -> dict:
+                   on_frame: Callable[[int, float, list[PartState]], None] | None = None,
+                   checkpoint: tuple | None = None) -> dict:
     """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
     part, outputs; ``partial``: None, or for a video that stops decoding part of the way through, what was
     tracked: ``frames_decoded``, ``frames_in_video`` (0 when the container does not say),
     ``stopped_at_s`` (the last decoded frame's time) and ``error``). ``on_frame(index, time_s, states)``
-    is called after every processed frame."""
+    is called after every processed frame. ``checkpoint``: (model, training config) already loaded from
+    ``opts.model`` (a batch worker loads it once for all its videos)."""
     from surftrack.io import TrackWriter
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
@@ -241,7 +243,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     model_path = Path(opts.model) if opts.model is not None else default_model_path()
     if not model_path.is_file():
         raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
-    model, train_cfg, _ = load_checkpoint(model_path, opts.device or "cpu")
+    model, train_cfg = checkpoint or load_checkpoint(model_path, opts.device or "cpu")[:2]
     specs, notes = match_parts(doc, model, str(boxes), opts.instruments)
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
     _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)

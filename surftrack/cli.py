@@ -243,8 +243,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_track(args: argparse.Namespace) -> int:
-    from surftrack.annotate import AnnotateOptions, annotate_video, video_jobs
+def _track_config(args: argparse.Namespace):
+    """The tracking config of ``track`` and ``batch``: ``--config`` with the command-line overrides."""
     from surftrack.track import load_track_config
 
     cfg = load_track_config(args.config)
@@ -261,6 +261,13 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
         if not torch.cuda.is_available():
             raise CLIError("--device cuda: no CUDA device is available (use --device cpu)")
+    return cfg
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    from surftrack.annotate import AnnotateOptions, annotate_video, video_jobs
+
+    cfg = _track_config(args)
     registry = _registry(args)
     jobs = video_jobs(args.video, args.boxes, args.camera, args.out)
     if len(jobs) > 1 and (args.overlay or args.export_tum or args.joints_csv):
@@ -286,6 +293,30 @@ def _cmd_track(args: argparse.Namespace) -> int:
                   f"decoding stopped at t = {p['stopped_at_s']:.3f} s ({p['error']})", file=sys.stderr)
             code = EXIT_PARTIAL
     return code
+
+
+#: Exit code of a batch in which some video failed, stopped decoding part of the way, or did not run.
+EXIT_BATCH_INCOMPLETE = 3
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from surftrack.annotate import AnnotateOptions
+    from surftrack.batch import FINISHED, batch_jobs, run_batch
+
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
+    opts = AnnotateOptions(model=_model(args), config=_track_config(args), device=args.device,
+                           progress=False, instruments=_registry(args))
+    jobs = batch_jobs(args.videos, args.boxes, args.camera, args.out)
+    rows = run_batch(jobs, args.out, opts, address=args.address, workers=args.workers, force=args.force,
+                     progress=not args.quiet)
+    for r in rows:
+        line = f"  {r['status']:8s} {r['video']}: {r['frames']} frames in {r['seconds']:.1f} s"
+        print(line + (f" ({r['error']})" if r["error"] else ""))
+    bad = [r for r in rows if r["status"] not in FINISHED]
+    print(f"surftrack batch: {len(rows) - len(bad)} of {len(rows)} videos finished; wrote "
+          f"{Path(args.out) / 'manifest.jsonl'}")
+    return EXIT_BATCH_INCOMPLETE if bad else 0
 
 
 def _cmd_join(args: argparse.Namespace) -> int:
@@ -434,6 +465,28 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("mcap", help="MCAP written by `surftrack VIDEO ...`")
     an.add_argument("--png", help="plot file (default: <mcap stem>.analysis.png)")
     an.set_defaults(func=_cmd_analyze)
+
+    ba = sub.add_parser("batch", help="track a folder of videos (or a CSV manifest) on Ray: one task per video, "
+                                      "a manifest of results; exit 3 when some video did not finish")
+    ba.add_argument("videos", help="a folder of videos, or a CSV with columns video, boxes[, camera]")
+    ba.add_argument("-o", "--out", required=True, help="output folder: <stem>.mcap per video and manifest.jsonl")
+    ba.add_argument("--boxes", help="folder of <video stem>.json (or .det.json) detections (with a folder of videos)")
+    ba.add_argument("--camera", help="camera.json for every video, or a folder of <video stem>.json "
+                                     "(default: camera.json beside each video)")
+    ba.add_argument("--address", help="Ray cluster to join ('auto' or ray://host:port; default: a local Ray "
+                                      "on this machine)")
+    ba.add_argument("--workers", type=int, help="videos tracked at once on a local Ray (default: the cores)")
+    ba.add_argument("--force", action="store_true", help="redo videos an earlier run of the batch finished")
+    ba.add_argument("--model", help="checkpoint (default: the bundled model)")
+    ba.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
+    ba.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
+    ba.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
+    ba.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9")
+    ba.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda on workers that have a GPU")
+    ba.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
+                    help="your instrument's description, for joint angles and the fit; repeatable")
+    ba.add_argument("--quiet", action="store_true", help="no progress bar")
+    ba.set_defaults(func=_cmd_batch)
 
     rc = sub.add_parser("recover", help="rewrite an unfinished MCAP (a run killed by SIGKILL or a crash) into a "
                                         "valid file with every readable message")

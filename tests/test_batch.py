@@ -1,0 +1,43 @@
+"""``surftrack batch`` on a real local Ray with 2 CPUs: a bad video is reported and skipped, the others
+finish with valid MCAPs, the manifest has a row per video, and a rerun processes nothing."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+from mcap.reader import make_reader
+
+from surftrack.cli import EXIT_BATCH_INCOMPLETE, main
+
+
+def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, capsys):
+    videos, boxes = tmp_path / "videos", tmp_path / "boxes"
+    videos.mkdir()
+    boxes.mkdir()
+    (videos / "a_bad.mp4").write_text("this is a text file, not a video")
+    for stem in ("a_bad", "b_good", "c_good"):
+        shutil.copy(clip / "det.json", boxes / f"{stem}.json")
+    for stem in ("b_good", "c_good"):
+        shutil.copy(clip / "video.mp4", videos / f"{stem}.mp4")
+    out = tmp_path / "out"
+    args = ["batch", str(videos), "-o", str(out), "--boxes", str(boxes), "--camera", str(clip / "camera.json"),
+            "--model", str(tiny_ckpt), "--workers", "2", "--quiet"]
+    assert main(args) == EXIT_BATCH_INCOMPLETE
+    printed = capsys.readouterr().out
+    assert "surftrack batch: 2 of 3 videos finished" in printed
+    rows = {json.loads(line)["video"]: json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()}
+    assert rows[str(videos / "a_bad.mp4")]["status"] == "failed"
+    assert "a_bad.mp4" in rows[str(videos / "a_bad.mp4")]["error"]
+    for stem in ("b_good", "c_good"):
+        r = rows[str(videos / f"{stem}.mp4")]
+        assert r["status"] == "done" and r["frames"] == 15 and r["fps"] > 0
+        with open(out / f"{stem}.mcap", "rb") as f:
+            assert make_reader(f).get_summary().statistics.message_end_time == 1_400_000_000
+    assert not (out / "a_bad.mcap").exists()
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")}
+
+    assert main(args) == EXIT_BATCH_INCOMPLETE  # the bad video is still bad; the good ones are not redone
+    lines = (out / "manifest.jsonl").read_text().splitlines()[3:]
+    assert sorted(json.loads(line)["status"] for line in lines) == ["failed", "skipped", "skipped"]
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")} == stamps
