@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from surftrack.annotate import AnnotateOptions, annotate_video
+from surftrack.jsonsafe import json_safe
 from surftrack.synth.clip import ClipConfig, make_clip
 from surftrack.track import load_track_config
 from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
@@ -46,7 +47,7 @@ def run_demo(out_dir: Path, seconds: float = 6.0, fps: float = 15.0, seed: int =
         "outputs": run["outputs"],
         "total_s": round(time.perf_counter() - t0, 1),
     }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    (out_dir / "summary.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False))
     (out_dir / "summary.md").write_text(
         f"Tracking {run['frames']} frames at {run['fps']:.1f} frames/s. Against the ground truth (ADD-10 with "
         f"the SurgRIPE diameter; frames where the part is visible, a frame without a pose counts as a miss):\n\n"
