@@ -9,14 +9,18 @@ given (Ray reuses worker processes), and asks for a GPU when the cluster has one
 ``partial``: the video stopped decoding part of the way through, ``failed``, ``skipped``: done before,
 ``stopped``: the batch was stopped first), frames, seconds, frames/s and the error line.
 
-Tasks rather than an actor pool: cancelling a running task raises KeyboardInterrupt inside it, so a batch
-stopped by Ctrl-C or SIGTERM lets every running video finalise its outputs as a single run does.
+A batch stopped by Ctrl-C or SIGTERM cancels the videos not yet started and writes ``OUT/.stop``; a running
+video checks for that file after every frame and stops as a single run does on Ctrl-C, finalising its
+outputs. A file rather than Ray's task cancellation, which did not interrupt a running video here, and
+which a worker on another machine sees through the shared output folder.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,8 +121,9 @@ def _finished_before(job: BatchJob, previous: dict[str, dict]) -> bool:
 _LOADED: dict[tuple[str, str], tuple] = {}  # per worker process: (model path, device) -> (model, config)
 
 
-def _track(job: BatchJob, opts: AnnotateOptions) -> dict:
-    """One video in a worker: the manifest row."""
+def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
+    """One video in a worker: the manifest row. It stops after the frame during which ``stop_file``
+    appears."""
     from surftrack.model.checkpoint import CheckpointError, load_checkpoint
     from surftrack.paths import default_model_path
 
@@ -131,7 +136,7 @@ def _track(job: BatchJob, opts: AnnotateOptions) -> dict:
             _LOADED[key] = load_checkpoint(key[0], key[1])[:2]
         s = annotate_video(job.video, job.boxes, AnnotateOptions(**{**_fields(opts), "out": job.out,
                                                                     "camera": job.camera}),
-                           checkpoint=_LOADED[key])
+                           checkpoint=_LOADED[key], on_frame=lambda *_: _stop_if(stop_file))
         row.update(status="partial" if s["partial"] else "done", frames=s["frames"], fps=round(s["fps"], 3))
         if s["partial"]:
             p = s["partial"]
@@ -143,6 +148,11 @@ def _track(job: BatchJob, opts: AnnotateOptions) -> dict:
         row.update(status="stopped", frames=getattr(e, "frames_done", 0), error="stopped before the end")
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def _stop_if(stop_file: Path) -> None:
+    if stop_file.exists():
+        raise KeyboardInterrupt
 
 
 def _fields(opts: AnnotateOptions) -> dict:
@@ -166,7 +176,8 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
     opts = opts or AnnotateOptions()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    manifest = out_dir / "manifest.jsonl"
+    manifest, stop_file = out_dir / "manifest.jsonl", out_dir / ".stop"
+    stop_file.unlink(missing_ok=True)
     previous: dict[str, dict] = {}
     if manifest.is_file():
         for line in manifest.read_text().splitlines():
@@ -196,17 +207,23 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         return rows
     started_here = not ray.is_initialized()
     if started_here:
+        # ray.init installs its own SIGTERM handler, which kills the driver without finalising anything:
+        # keep the caller's (the CLI turns SIGTERM into a KeyboardInterrupt that cancels the videos).
+        handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         if address is None:
             ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
                      configure_logging=False)
         else:
             ray.init(address=address, log_to_driver=False, configure_logging=False)
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in handlers.items():
+                signal.signal(sig, handler)
     try:
         gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
         task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=0)(_track)
         if gpus:
             opts = AnnotateOptions(**{**_fields(opts), "device": opts.device or "cuda"})
-        pending = {task.remote(job, opts): job for job in todo}
+        pending = {task.remote(job, opts, stop_file): job for job in todo}
         bar = tqdm(total=len(todo), unit="video", desc="batch", disable=not progress)
         frames = 0
         try:
@@ -218,11 +235,12 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
                 bar.update(1)
                 bar.set_postfix(frames=frames)
         except KeyboardInterrupt:
+            stop_file.touch()  # running videos stop after their current frame and finalise their outputs
             for ref in pending:
-                ray.cancel(ref)  # KeyboardInterrupt in a running video: it finalises its outputs
+                ray.cancel(ref)  # those not started never start
             for ref, job in pending.items():
                 try:
-                    row = ray.get(ref, timeout=120)
+                    row = ray.get(ref)
                 except Exception:  # noqa: BLE001 - cancelled before it started, or gone
                     row = {"video": str(job.video), "mcap": str(job.out), "status": "stopped", "frames": 0,
                            "seconds": 0.0, "fps": 0.0, "error": "stopped before it ran"}
@@ -230,6 +248,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
             raise
         finally:
             bar.close()
+            stop_file.unlink(missing_ok=True)
     finally:
         if started_here:
             ray.shutdown()

@@ -50,6 +50,9 @@ class Stopped(KeyboardInterrupt):
 STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
 
 
+_received: list[int] = []  # stop signals received while a command ran
+
+
 @contextlib.contextmanager
 def _stop_on_signals() -> Iterator[None]:
     """Turn SIGTERM and SIGHUP into :class:`Stopped` while the command runs. After the first one, further
@@ -58,6 +61,7 @@ def _stop_on_signals() -> Iterator[None]:
     def stop(signum, frame):
         for s in (*STOP_SIGNALS, signal.SIGINT):
             signal.signal(s, signal.SIG_IGN)
+        _received.append(signum)  # libraries that catch and re-raise KeyboardInterrupt (Ray) lose Stopped
         raise Stopped(signum)
 
     if threading.current_thread() is not threading.main_thread():  # only the main thread takes signals
@@ -529,7 +533,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"surftrack: error: {'; '.join(lines)}", file=sys.stderr)  # one line, whatever raised it
         return 2
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP as Stopped
-        signum = getattr(e, "signum", signal.SIGINT)
+        signum = getattr(e, "signum", _received[-1] if _received else signal.SIGINT)
         done, frames = getattr(e, "outputs", None), getattr(e, "frames_done", None)
         print(f"surftrack: stopped by {signal.Signals(signum).name}"
               + (f" after {frames} frames" if frames is not None else "")

@@ -41,3 +41,36 @@ def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, c
     lines = (out / "manifest.jsonl").read_text().splitlines()[3:]
     assert sorted(json.loads(line)["status"] for line in lines) == ["failed", "skipped", "skipped"]
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")} == stamps
+
+
+def test_sigterm_stops_a_batch_with_finished_files(clip, tiny_ckpt, tmp_path):
+    """SIGTERM while the first video is tracked: exit 143, every MCAP written is finished, the manifest has
+    a row for every video and the videos not started are marked stopped."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    videos, boxes, out = tmp_path / "videos", tmp_path / "boxes", tmp_path / "out"
+    videos.mkdir()
+    boxes.mkdir()
+    for stem in "abcd":
+        shutil.copy(clip / "video.mp4", videos / f"{stem}.mp4")
+        shutil.copy(clip / "det.json", boxes / f"{stem}.json")
+    proc = subprocess.Popen([sys.executable, "-m", "surftrack.cli", "batch", str(videos), "-o", str(out), "--boxes",
+                             str(boxes), "--camera", str(clip / "camera.json"), "--model", str(tiny_ckpt),
+                             "--workers", "1", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(out.glob("*.mcap")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=180)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "surftrack: stopped by SIGTERM"
+    rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    assert sorted(r["video"] for r in rows) == sorted(str(videos / f"{s}.mp4") for s in "abcd")
+    assert {r["status"] for r in rows} <= {"done", "stopped"} and any(r["status"] == "stopped" for r in rows)
+    for p in out.glob("*.mcap"):
+        with open(p, "rb") as f:
+            assert make_reader(f).get_summary() is not None, p
+    assert not (out / ".stop").exists()
