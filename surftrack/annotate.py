@@ -239,7 +239,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     if opts.start is not None and opts.end is not None and opts.end <= opts.start:
         raise InputError(f"--end {opts.end} must be after --start {opts.start}")
     if opts.start is not None and info.duration_s and opts.start >= info.duration_s:
-        raise InputError(f"{video}: --start {opts.start:g} s is past the end of the video ({info.duration_s:.2f} s)")
+        raise InputError(f"{video}: --start {opts.start:g} s is past the end of the video "
+                         f"({info.duration_s:.2f} s)")
     model_path = Path(opts.model) if opts.model is not None else default_model_path()
     if not model_path.is_file():
         raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
@@ -394,7 +395,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         notes.append(f"{boxes}: boxes for {len(beyond)} frame(s) after the video's last frame ({index}), from "
                      f"{beyond[0]}: frames are numbered from 0; were these numbered from 1, or made for "
                      f"another video?")
-    return {"video": str(video), "frames": n_done, "partial": partial, "seconds": wall, "fps": n_done / max(wall, 1e-9),
+    return {"video": str(video), "frames": n_done, "partial": partial, "seconds": wall,
+            "fps": n_done / max(wall, 1e-9),
             "track_ms_per_frame": 1e3 * timing["track_s"] / n_done,
             "joints_ms_per_frame": 1e3 * timing["joints_s"] / n_done, "notes": notes,
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}

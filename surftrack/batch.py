@@ -22,7 +22,7 @@ import json
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from surftrack.annotate import VIDEO_SUFFIXES, AnnotateOptions, annotate_video
@@ -128,14 +128,12 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
     from surftrack.paths import default_model_path
 
     t0 = time.perf_counter()
-    row = {"video": str(job.video), "mcap": str(job.out), "status": "failed", "frames": 0, "seconds": 0.0,
-           "fps": 0.0, "error": ""}
+    row = _row(job, "failed", "")
     try:
         key = (str(opts.model or default_model_path()), opts.device or "cpu")
         if key not in _LOADED:
             _LOADED[key] = load_checkpoint(key[0], key[1])[:2]
-        s = annotate_video(job.video, job.boxes, AnnotateOptions(**{**_fields(opts), "out": job.out,
-                                                                    "camera": job.camera}),
+        s = annotate_video(job.video, job.boxes, replace(opts, out=job.out, camera=job.camera),
                            checkpoint=_LOADED[key], on_frame=lambda *_: _stop_if(stop_file))
         row.update(status="partial" if s["partial"] else "done", frames=s["frames"], fps=round(s["fps"], 3))
         if s["partial"]:
@@ -155,9 +153,10 @@ def _stop_if(stop_file: Path) -> None:
         raise KeyboardInterrupt
 
 
-def _fields(opts: AnnotateOptions) -> dict:
-    """The fields of ``opts`` as they are (``dataclasses.asdict`` would copy the config and registry)."""
-    return {k: getattr(opts, k) for k in AnnotateOptions.__dataclass_fields__}
+def _row(job: BatchJob, status: str, error: str) -> dict:
+    """A manifest row of ``job`` that tracked nothing (yet)."""
+    return {"video": str(job.video), "mcap": str(job.out), "status": status, "frames": 0, "seconds": 0.0,
+            "fps": 0.0, "error": error}
 
 
 def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions | None = None, *,
@@ -196,11 +195,9 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
     todo = []
     for job in jobs:
         if not force and _finished_before(job, previous):
-            record({"video": str(job.video), "mcap": str(job.out), "status": "skipped", "frames": 0,
-                    "seconds": 0.0, "fps": 0.0, "error": "finished by an earlier run"})
+            record(_row(job, "skipped", "finished by an earlier run"))
         elif (problem := check_job(job)) is not None:
-            record({"video": str(job.video), "mcap": str(job.out), "status": "failed", "frames": 0,
-                    "seconds": 0.0, "fps": 0.0, "error": problem})
+            record(_row(job, "failed", problem))
         else:
             todo.append(job)
     if not todo:
@@ -222,7 +219,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
         task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=0)(_track)
         if gpus:
-            opts = AnnotateOptions(**{**_fields(opts), "device": opts.device or "cuda"})
+            opts = replace(opts, device=opts.device or "cuda")
         pending = {task.remote(job, opts, stop_file): job for job in todo}
         bar = tqdm(total=len(todo), unit="video", desc="batch", disable=not progress)
         frames = 0
@@ -242,8 +239,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
                 try:
                     row = ray.get(ref)
                 except Exception:  # noqa: BLE001 - cancelled before it started, or gone
-                    row = {"video": str(job.video), "mcap": str(job.out), "status": "stopped", "frames": 0,
-                           "seconds": 0.0, "fps": 0.0, "error": "stopped before it ran"}
+                    row = _row(job, "stopped", "stopped before it ran")
                 record(row)
             raise
         finally:

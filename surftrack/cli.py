@@ -21,6 +21,7 @@ from surftrack import __version__
 
 if TYPE_CHECKING:
     from surftrack.instruments import InstrumentRegistry
+    from surftrack.track import TrackConfig
 
 
 #: surftrack.pose.preset.PRESETS's names, spelt out so that building the parser does not import torch.
@@ -64,6 +65,7 @@ def _stop_on_signals() -> Iterator[None]:
         _received.append(signum)  # libraries that catch and re-raise KeyboardInterrupt (Ray) lose Stopped
         raise Stopped(signum)
 
+    _received.clear()
     if threading.current_thread() is not threading.main_thread():  # only the main thread takes signals
         yield
         return
@@ -247,7 +249,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _track_config(args: argparse.Namespace):
+def _track_config(args: argparse.Namespace) -> TrackConfig:
     """The tracking config of ``track`` and ``batch``: ``--config`` with the command-line overrides."""
     from surftrack.track import load_track_config
 
