@@ -27,6 +27,7 @@ from surftrack import __version__
 from surftrack.instruments import BUILTIN, JOINT_NAMES, InstrumentRegistry
 from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
+from surftrack.track.smoother import LagSmoother
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
@@ -119,6 +120,17 @@ def _frame_boxes(doc: dict, cam) -> dict[int, dict[int, list]]:
             per.setdefault(int(d["part_id"]), []).append((_undistort_box(box, cam) if distorted else box,
                                                           float(d["score"])))
     return out
+
+
+def _uncertainty(s: PartState) -> dict:
+    """Per-axis standard deviations of a part's pose (mm; body rotation, deg) and its velocity (camera
+    frame, mm/s; body angular velocity, deg/s) from its filter state, for the status message."""
+    if s.filter_step is None:
+        return {}
+    sd = np.sqrt(np.clip(np.diag(s.filter_step.P), 0.0, None))
+    x = s.filter_step.x
+    return {"position_std_mm": sd[0:3].round(3).tolist(), "rotation_std_deg": np.degrees(sd[6:9]).round(3).tolist(),
+            "velocity_mm_s": x[3:6].round(3).tolist(), "angular_velocity_deg_s": np.degrees(x[9:12]).round(3).tolist()}
 
 
 def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
@@ -307,87 +319,115 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
         bar = tqdm(total=_frames_to_read(info, opts.end), unit="frame", desc=video.name,
                    disable=not opts.progress)
+        shown: set[str] = set()  # parts whose mesh is in the 3D scene
+        keep_frames = opts.overlay is not None or opts.mcap_images
+
+        def emit(index: int, t_s: float, frame: np.ndarray | None, states: list[PartState]) -> None:
+            """Write one frame's (smoothed) states to every output."""
+            nonlocal shown
+            posed = {s.spec.name: (s.R, s.t) for s in states if s.R is not None}
+            for s in states:
+                writer.status(t_s, s.spec.name, s.status, s.confidence, {**s.info, **_uncertainty(s)})
+                counts[s.spec.name][s.status] += 1
+                conf_sum[s.spec.name] += s.confidence
+            if posed:
+                writer.poses(t_s, posed)
+            # 3D meshes: shown while a part has a pose, deleted while it has none
+            now = set(posed)
+            if now - shown:
+                writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
+                                          for s in specs if s.name in now - shown})
+            if shown - now:
+                writer.scene_deletions(t_s, sorted(shown - now))
+            shown = now
+            if opts.mcap_images:
+                _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
+                writer.image_jpeg(t_s, jpg.tobytes())
+                writer.annotations(t_s, **_annotations(cam.K, states))
+            if overlay is not None:
+                overlay.write(frame, t_s, [PartOverlay(s.spec.name, s.status, s.confidence, s.R, s.t, s.box,
+                                                       (s.spec.vertices, s.spec.faces), 8.0) for s in states])
+            if tum is not None:
+                for name, (R, t) in posed.items():
+                    tum.add(name, t_s, R, t)
+            for (inst, instance), fitter in fitters.items():
+                t0 = time.perf_counter()
+                fit = fitter.update([s for s in states if (s.spec.instrument, s.spec.instance) == (inst, instance)])
+                timing["joints_s"] += time.perf_counter() - t0
+                if fit is None:
+                    continue
+                label = f"{inst}.{instance}"
+                writer.joint_states(t_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
+                if joints_csv is not None:
+                    joints_csv.add(t_s, label, fit)
+
+        def release(ready: list, notify: bool = True) -> None:
+            nonlocal n_done
+            for k, ((index, t_s, frame, states), steps) in enumerate(ready):
+                states = [s.with_step(steps.get(s.spec.name)) for s in states]
+                emit(index, t_s, frame, states)
+                n_done += 1  # its outputs are written: counted even when on_frame stops the run
+                if notify and on_frame is not None:
+                    try:
+                        on_frame(index, t_s, states)
+                    except KeyboardInterrupt:  # asked to stop: the frames already smoothed are written
+                        release(ready[k + 1:], notify=False)
+                        raise
+
+        # frames wait here until the smoother has seen enough of their future (none when causal)
+        smoother = LagSmoother(round(opts.config.smooth_lag_s * info.fps))
         wall0 = time.perf_counter()
         index, read_to_end, partial = -1, False, None
-        shown: set[str] = set()  # parts whose mesh is in the 3D scene
-        try:
-            frames = _video_frames(video)
-            for index, (t_s, frame) in enumerate(frames):
-                if opts.start is not None and t_s < opts.start - 1e-9:
-                    bar.update(1)
-                    continue
-                if opts.end is not None and t_s > opts.end + 1e-9:
-                    break
-                if last_t is not None and t_s <= last_t:
-                    raise InputError(f"{video}: frame {index} has time {t_s:.6f} s, not after the previous "
-                                     f"frame's {last_t:.6f} s (broken timestamps; remux the video)")
-                last_t = t_s
-                if index in det_times and abs(det_times[index] - t_s) > half_frame:
-                    raise InputError(f"{boxes}: frame {index} is at {det_times[index]:.3f} s there but at "
-                                     f"{t_s:.3f} s in {video}: the boxes belong to another video or frame rate")
-                frame = undistort(frame)
-                if t_first is None:
-                    t_first = t_s
-                    writer.camera_calibration(t_s, cam.K, info.width, info.height)
-                t0 = time.perf_counter()
-                states = tracker.step(frame, t_s, per_frame.get(index))
-                timing["track_s"] += time.perf_counter() - t0
-                posed = {s.spec.name: (s.R, s.t) for s in states if s.R is not None}
-                for s in states:
-                    writer.status(t_s, s.spec.name, s.status, s.confidence, s.info)
-                    counts[s.spec.name][s.status] += 1
-                    conf_sum[s.spec.name] += s.confidence
-                if posed:
-                    writer.poses(t_s, posed)
-                # 3D meshes: shown while a part has a pose, deleted while it has none
-                now = set(posed)
-                if now - shown:
-                    writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
-                                              for s in specs if s.name in now - shown})
-                if shown - now:
-                    writer.scene_deletions(t_s, sorted(shown - now))
-                shown = now
-                if opts.mcap_images:
-                    _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
-                                           [cv2.IMWRITE_JPEG_QUALITY, 85])
-                    writer.image_jpeg(t_s, jpg.tobytes())
-                    writer.annotations(t_s, **_annotations(cam.K, states))
-                if overlay is not None:
-                    overlay.write(frame, t_s, [PartOverlay(s.spec.name, s.status, s.confidence, s.R, s.t, s.box,
-                                                           (s.spec.vertices, s.spec.faces), 8.0) for s in states])
-                if tum is not None:
-                    for name, (R, t) in posed.items():
-                        tum.add(name, t_s, R, t)
-                for (inst, instance), fitter in fitters.items():
-                    t0 = time.perf_counter()
-                    fit = fitter.update([s for s in states
-                                         if (s.spec.instrument, s.spec.instance) == (inst, instance)])
-                    timing["joints_s"] += time.perf_counter() - t0
-                    if fit is None:
+
+        def track_frames() -> None:
+            nonlocal index, read_to_end, partial, last_t, t_first
+            try:
+                for index, (t_s, frame) in enumerate(_video_frames(video)):
+                    if opts.start is not None and t_s < opts.start - 1e-9:
+                        bar.update(1)
                         continue
-                    label = f"{inst}.{instance}"
-                    writer.joint_states(t_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
-                    if joints_csv is not None:
-                        joints_csv.add(t_s, label, fit)
-                n_done += 1  # its outputs are written: counted even when on_frame stops the run
-                if on_frame is not None:
-                    on_frame(index, t_s, states)
-                bar.update(1)
-                bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
-            else:
-                read_to_end = True
-        except DecodeError as e:  # keep what decoded: the outputs close normally and the summary says so
-            if n_done == 0:
-                raise
-            partial = {"frames_decoded": index + 1, "frames_in_video": info.frames, "stopped_at_s": last_t,
-                       "error": str(e)}
-        except KeyboardInterrupt as e:  # Ctrl-C or a stop signal: the outputs close as it unwinds
+                    if opts.end is not None and t_s > opts.end + 1e-9:
+                        break
+                    if last_t is not None and t_s <= last_t:
+                        raise InputError(f"{video}: frame {index} has time {t_s:.6f} s, not after the previous "
+                                         f"frame's {last_t:.6f} s (broken timestamps; remux the video)")
+                    last_t = t_s
+                    if index in det_times and abs(det_times[index] - t_s) > half_frame:
+                        raise InputError(f"{boxes}: frame {index} is at {det_times[index]:.3f} s there but at "
+                                         f"{t_s:.3f} s in {video}: the boxes belong to another video or frame rate")
+                    frame = undistort(frame)
+                    if t_first is None:
+                        t_first = t_s
+                        writer.camera_calibration(t_s, cam.K, info.width, info.height)
+                    t0 = time.perf_counter()
+                    states = tracker.step(frame, t_s, per_frame.get(index))
+                    timing["track_s"] += time.perf_counter() - t0
+                    release(smoother.push((index, t_s, frame if keep_frames else None, states),
+                                          {s.spec.name: s.filter_step for s in states}))
+                    bar.update(1)
+                    bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
+                else:
+                    read_to_end = True
+            except DecodeError as e:  # keep what decoded: the outputs close normally and the summary says so
+                if n_done + len(smoother) == 0:
+                    raise
+                partial = {"frames_decoded": index + 1, "frames_in_video": info.frames, "stopped_at_s": last_t,
+                           "error": str(e)}
+            release(smoother.flush())  # the last frames, smoothed with the future there is
+
+        try:
+            track_frames()
+        except KeyboardInterrupt as e:  # Ctrl-C or a stop signal: what was tracked is written, then closed
+            release(smoother.flush(), notify=False)
             e.outputs = list(outputs.values())
             e.frames_done = n_done
             raise
+        except BaseException:
+            release(smoother.flush(), notify=False)  # what was tracked before the error is written too
+            raise
         finally:
             bar.close()
-            wall = time.perf_counter() - wall0
+        wall = time.perf_counter() - wall0
     if n_done == 0:
         raise InputError(f"{video}: no frame between --start and --end")
     beyond = sorted(k for k in per_frame if k > index)

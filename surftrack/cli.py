@@ -260,6 +260,8 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
         cfg = cfg.replace(keyframe_every=args.keyframe_every)
     if args.preset is not None:
         cfg = cfg.replace(preset=args.preset)
+    if args.causal:
+        cfg = cfg.replace(smooth_lag_s=0.0)
     if args.views is not None:
         cfg = cfg.replace(views=_checked_views(args.views))
     if args.device == "cuda":
@@ -448,6 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--model", help="checkpoint (default: the bundled Large Needle Driver model)")
     tk.add_argument("-o", "--out", help="MCAP file (default: the video's name with .mcap; a folder for a folder)")
     tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
+    tk.add_argument("--causal", action="store_true", help="write each frame's pose from the frames up to it "
+                    "only (online use); by default poses are smoothed with the second after them too")
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
                     "preset's; 5: about 4x the keyframe time, better poses)")
@@ -486,6 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--model", help="checkpoint (default: the bundled model)")
     ba.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     ba.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
+    ba.add_argument("--causal", action="store_true", help="no smoothing with later frames (see track --causal)")
     ba.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     ba.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9")
     ba.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda on workers that have a GPU")

@@ -33,8 +33,11 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
-def test_stop_signal_finalises_every_output(clip, tiny_ckpt, tmp_path, signum):
+@pytest.mark.parametrize("signum,causal", [(signal.SIGTERM, True), (signal.SIGHUP, True), (signal.SIGTERM, False)])
+def test_stop_signal_finalises_every_output(clip, tiny_ckpt, tmp_path, signum, causal):
+    """The signal arrives as frame 4 is written. Causal: frames 0-4 were tracked and are written.
+    Smoothed: frame 4 waited for the clip's last frame (1 s of future), so all 15 tracked frames are
+    written, the last ones smoothed with what there was."""
     from mcap.reader import make_reader
 
     from surftrack.io.joints_csv import JOINT_CSV_COLUMNS
@@ -45,21 +48,22 @@ def test_stop_signal_finalises_every_output(clip, tiny_ckpt, tmp_path, signum):
     cmd = [sys.executable, "-c", DRIVER.format(signum=int(signum)), "track", str(clip / "video.mp4"),
            "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"), "--model", str(tiny_ckpt),
            "-o", str(out), "--overlay", str(tmp_path / "x.mp4"), "--export-tum", str(tmp_path / "tum"),
-           "--joints-csv", str(tmp_path / "j.csv"), "--quiet"]
+           "--joints-csv", str(tmp_path / "j.csv"), "--quiet"] + (["--causal"] if causal else [])
+    n = 5 if causal else 15
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 128 + signum, r.stderr
     last = r.stderr.strip().splitlines()[-1]
-    assert last.startswith(f"surftrack: stopped by {signal.Signals(signum).name} after 5 frames; finalised ")
+    assert last.startswith(f"surftrack: stopped by {signal.Signals(signum).name} after {n} frames; finalised ")
     assert str(out) in last and "Traceback" not in r.stderr
     with open(out, "rb") as f:
         summary = make_reader(f).get_summary()  # needs the footer: a finished file
-    assert summary.statistics.message_end_time == 400_000_000  # frames 0..4 at 10 fps
-    assert len(list(read_video_frames(tmp_path / "x.mp4"))) == 5
+    assert summary.statistics.message_end_time == (n - 1) * 100_000_000  # frames 0..n-1 at 10 fps
+    assert len(list(read_video_frames(tmp_path / "x.mp4"))) == n
     assert (tmp_path / "tum").is_dir()  # a part's file appears with its first pose (the untrained model has few)
-    assert all(len(read_tum(p)[0]) <= 5 for p in (tmp_path / "tum").glob("*.tum"))
+    assert all(len(read_tum(p)[0]) <= n for p in (tmp_path / "tum").glob("*.tum"))
     with open(tmp_path / "j.csv", newline="") as f:
         rows = list(csv.reader(f))
-    assert tuple(rows[0]) == JOINT_CSV_COLUMNS and all(float(r[0]) <= 0.4 + 1e-9 for r in rows[1:])
+    assert tuple(rows[0]) == JOINT_CSV_COLUMNS and all(float(r[0]) <= (n - 1) / 10 + 1e-9 for r in rows[1:])
 
 
 def test_start_past_the_end_leaves_no_output(clip, tiny_ckpt, tmp_path, capsys):

@@ -39,6 +39,10 @@ class TrackConfig:
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
     initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
+    ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
+    frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
+    memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
+
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
@@ -65,6 +69,7 @@ class TrackConfig:
     est_rot_std_deg: float = 5.0
     init_min_inliers: int = 6
     init_min_score: float = 0.0
+    smooth_lag_s: float = 1.0
     kinematic: bool = True
     kinematic_anchor: str = "wrist"
     kinematic_anchor_weight: float = 10.0
@@ -107,6 +112,8 @@ class TrackConfig:
         for name in ("flow_floor_mm", "flow_floor_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
+        if not (math.isfinite(self.smooth_lag_s) and self.smooth_lag_s >= 0):
+            raise ValueError(f"smooth_lag_s must be a finite number >= 0, got {self.smooth_lag_s}")
         if not math.isfinite(self.init_min_score):
             raise ValueError(f"init_min_score must be a finite number, got {self.init_min_score}")
 

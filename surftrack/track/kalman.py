@@ -29,6 +29,12 @@ Conventions
   re-initialise from the estimator (``lost`` once it reaches ``max_rejections``). ``init`` is never gated.
 
 Time comes from real timestamps in seconds (variable frame rate); ``predict`` raises on ``dt <= 0``.
+
+For smoothing (:mod:`.smoother`) the filter keeps what the backward pass needs: ``prior`` (the prediction
+into the current frame, with its error-state transition) and :meth:`PoseKalman.snapshot` (the filtered
+state). ``init`` starts a new segment (no prior: the smoother does not link across it);
+:meth:`PoseKalman.restart` takes a measurement the filter would have gated out by widening the prior,
+which keeps the link.
 """
 
 from __future__ import annotations
@@ -98,6 +104,41 @@ def _block_q(dt: float, q: float) -> np.ndarray:
     return q * np.block([[dt**3 / 3.0 * i3, dt**2 / 2.0 * i3], [dt**2 / 2.0 * i3, dt * i3]])
 
 
+@dataclass(frozen=True)
+class FilterPrior:
+    """The prediction into a frame: error-state transition ``F`` (12, 12) from the previous frame's
+    filtered state, predicted nominal rotation ``R`` (3, 3), error state ``x`` (12,) and covariance
+    ``P`` (12, 12) (process noise and any widening by :meth:`PoseKalman.restart` included)."""
+
+    F: np.ndarray
+    R: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+
+
+@dataclass(frozen=True)
+class FilterStep:
+    """One frame of a part's filter: ``time`` (s), filtered nominal rotation ``R`` (3, 3), error state
+    ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12); ``prior``:
+    the prediction into this frame, or None where a segment starts (first pose, re-initialisation)."""
+
+    time: float
+    R: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    prior: FilterPrior | None
+
+    @property
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(R (3, 3), t (3,) mm)``, model-to-camera."""
+        return self.R @ so3_exp(self.x[6:9]), self.x[0:3].copy()
+
+    @property
+    def pose_cov(self) -> np.ndarray:
+        """6x6 covariance of (t mm, body rotation rad)."""
+        return _H @ self.P @ _H.T
+
+
 _H = np.zeros((6, 12))
 _H[0:3, 0:3] = np.eye(3)
 _H[3:6, 6:9] = np.eye(3)
@@ -120,6 +161,7 @@ class PoseKalman:
         self.time: float | None = None
         self.rejections_in_a_row = 0
         self.last_d2: float | None = None
+        self.prior: FilterPrior | None = None  # the prediction into the current frame (None after init)
 
     # ------------------------------------------------------------------ state
     @property
@@ -191,6 +233,12 @@ class PoseKalman:
         self.time = float(time)
         self.rejections_in_a_row = 0
         self.last_d2 = None
+        self.prior = None
+
+    def snapshot(self) -> FilterStep:
+        """The current filtered state with the prediction that led to it (copies)."""
+        self._require_init()
+        return FilterStep(self.time, self.R_ref.copy(), self.kf.x.reshape(12).copy(), self.kf.P.copy(), self.prior)
 
     def _transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         omega = self.kf.x.reshape(12)[9:12]
@@ -222,6 +270,29 @@ class PoseKalman:
         self.kf.x = xn.reshape(12, 1)
         self.R_ref = R_next
         self.time = float(time)
+        self.prior = FilterPrior(F, R_next.copy(), xn.copy(), self.kf.P.copy())
+
+    def restart(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray, widen: np.ndarray) -> None:
+        """Take a pose measurement the filter disbelieves (it would be gated out, or the filter is
+        overconfident): go back to this frame's prediction, add ``widen`` (6x6, mm^2 then rad^2) to its
+        pose covariance and drop the pose-rate correlations (a jump of this step alone), and fuse the
+        measurement ungated. Unlike
+        ``init`` this keeps the velocities and the link to the previous frames for the smoother. Without
+        a prediction into this frame (just initialised) it is ``init``."""
+        if self.prior is None:
+            self.init(R_meas, t_meas, self.time, meas_cov)
+            return
+        # the pose block widened and cut loose from the rates: a jump says nothing about the velocities
+        # (through the prior's pose-velocity correlation it would turn into a velocity that runs away)
+        P = self.prior.P + _H.T @ np.asarray(widen, np.float64) @ _H
+        pose, rates = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+        P[np.ix_(pose, rates)] = 0.0
+        P[np.ix_(rates, pose)] = 0.0
+        self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, P)
+        self.R_ref = self.prior.R.copy()
+        self.kf.x = self.prior.x.reshape(12, 1).copy()
+        self.kf.P = P.copy()
+        self.update(R_meas, t_meas, meas_cov, gate=False)
 
     def predicted_pose(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         """Constant-velocity extrapolation to ``time`` (>= current time) without changing the filter."""

@@ -21,6 +21,7 @@ estimator's noise is re-initialised there, since its anchor part is far more rel
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ from surftrack.pose.kinematic import apply_kinematics, check_anchor
 from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
-from surftrack.track.kalman import PoseKalman
+from surftrack.track.kalman import FilterStep, PoseKalman
 
 STATUSES = ("init", "keyframe", "tracking", "predicted", "lost")
 
@@ -73,6 +74,14 @@ class PartState:
     t: np.ndarray | None
     box: Box | None
     info: dict = field(default_factory=dict)
+    filter_step: FilterStep | None = None  # the part's filter this frame (for smoothing; None without a pose)
+
+    def with_step(self, step: FilterStep | None) -> PartState:
+        """This state with its pose taken from ``step`` (e.g. the smoothed one)."""
+        if step is None:
+            return self
+        R, t = step.pose
+        return dataclasses.replace(self, R=R, t=t, filter_step=step)
 
 
 def box_iou(a: Box, b: Box) -> float:
@@ -162,6 +171,9 @@ class Tracker:
                 check_anchor(self._kinematic, estimator.model.parts)
             except ValueError as e:
                 raise TrackConfigError(str(e)) from None
+        # an estimator pose the filter disbelieves replaces the prediction (10x the estimator's noise on
+        # top of it), without cutting the track in two for the smoother
+        self._widen = 100.0 * self._est_cov
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
 
     # ------------------------------------------------------------------ helpers
@@ -324,11 +336,11 @@ class Tracker:
                     elif moved:
                         # placed by the instrument's kinematics from its anchor part, which the estimator
                         # gets right far more often than flow keeps this part right: take it as it is
-                        tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                        tr.kf.restart(res.R, res.t, self._est_cov, self._widen)
                         tr.status, tr.confidence = "keyframe", conf
                     else:
                         if not tr.kf.update(res.R, res.t, self._est_cov):
-                            tr.kf.init(res.R, res.t, time_s, self._est_cov)  # scored better than the track
+                            tr.kf.restart(res.R, res.t, self._est_cov, self._widen)  # scored better than the track
                         tr.status, tr.confidence = "keyframe", conf
                     tr.since_keyframe, tr.since_meas = 0, 0
                 elif good:
@@ -367,7 +379,7 @@ class Tracker:
             if tr.has_pose:
                 R, t = tr.kf.pose
                 states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
-                                        out_boxes.get(tr.spec.track_id), dict(tr.info)))
+                                        out_boxes.get(tr.spec.track_id), dict(tr.info), tr.kf.snapshot()))
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
                                         dict(tr.info)))

@@ -1,0 +1,153 @@
+"""The error-state RTS smoother against filterpy's linear RTS and a brute-force batch solution, on
+rotations, and as a fixed-lag stream."""
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from surftrack.geometry import rotation_angle_deg, so3_exp
+from surftrack.track.kalman import KalmanConfig, PoseKalman, _block_q
+from surftrack.track.smoother import LagSmoother, rts_smooth
+
+DT = 1 / 30
+CFG = KalmanConfig(accel_std_mm_s2=50.0, ang_accel_std_rad_s2=2.0)
+MEAS_COV = np.diag([4.0, 4.0, 9.0, 1e-4, 1e-4, 1e-4])
+
+
+def _translation_run(n=25, seed=0):
+    rng = np.random.default_rng(seed)
+    truth = np.array([[10 + 30 * k * DT, -5 + 0.5 * np.sin(k / 4), 80 - 10 * k * DT] for k in range(n)])
+    meas = truth + rng.normal(0, [2.0, 2.0, 3.0], (n, 3))
+    kf = PoseKalman(CFG)
+    steps = []
+    for k in range(n):
+        if k == 0:
+            kf.init(np.eye(3), meas[0], 0.0, MEAS_COV)
+        else:
+            kf.predict(k * DT)
+            kf.update(np.eye(3), meas[k], MEAS_COV, gate=False)
+        steps.append(kf.snapshot())
+    return truth, meas, steps
+
+
+def _linear_model():
+    F = np.eye(6)
+    F[0:3, 3:6] = np.eye(3) * DT
+    Q = _block_q(DT, CFG.accel_std_mm_s2**2)
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    P0 = np.diag([4.0, 4.0, 9.0] + [CFG.init_vel_std_mm_s**2] * 3)
+    return F, Q, H, P0
+
+
+def test_matches_filterpy_linear_rts():
+    _, meas, steps = _translation_run()
+    F, Q, H, P0 = _linear_model()
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    kf.F, kf.Q, kf.H, kf.R = F, Q, H, MEAS_COV[:3, :3]
+    kf.x, kf.P = np.r_[meas[0], np.zeros(3)].reshape(6, 1), P0
+    xs, ps = [kf.x.ravel().copy()], [kf.P.copy()]
+    for z in meas[1:]:
+        kf.predict()
+        kf.update(z.reshape(3, 1))
+        xs.append(kf.x.ravel().copy())
+        ps.append(kf.P.copy())
+    xs_s, ps_s, _, _ = kf.rts_smoother(np.array(xs)[:, :, None], np.array(ps))
+    ours = rts_smooth(steps)
+    np.testing.assert_allclose([s.x[0:6] for s in ours], xs_s[:, :, 0], atol=1e-6)
+    np.testing.assert_allclose([s.P[0:6, 0:6] for s in ours], ps_s, rtol=1e-6, atol=1e-8)
+
+
+def test_matches_brute_force_batch_solution():
+    """The smoothed means are the minimiser of the whole trajectory's least-squares problem (prior on the
+    first state, process model between frames, measurements), solved here in one dense system."""
+    _, meas, steps = _translation_run(n=15, seed=1)
+    F, Q, H, P0 = _linear_model()
+    n, m = len(meas), 6
+    A = np.zeros((n * m, n * m))
+    b = np.zeros(n * m)
+    W0, Wq, Wr = np.linalg.inv(P0), np.linalg.inv(Q), np.linalg.inv(MEAS_COV[:3, :3])
+    A[:m, :m] += W0
+    b[:m] += W0 @ np.r_[meas[0], np.zeros(3)]
+    for k in range(1, n):
+        i, j = slice((k - 1) * m, k * m), slice(k * m, (k + 1) * m)
+        # (x_k - F x_{k-1})^T Wq (x_k - F x_{k-1})
+        A[j, j] += Wq
+        A[i, i] += F.T @ Wq @ F
+        A[i, j] -= F.T @ Wq
+        A[j, i] -= Wq @ F
+        A[j, j] += H.T @ Wr @ H
+        b[j] += H.T @ Wr @ meas[k]
+    batch = np.linalg.solve(A, b).reshape(n, m)
+    np.testing.assert_allclose([s.x[0:6] for s in rts_smooth(steps)], batch, atol=1e-6)
+
+
+def test_rotation_smoothing_beats_filtering():
+    rng = np.random.default_rng(3)
+    omega = np.array([0.4, -0.8, 0.3])  # rad/s, body frame
+    R0 = so3_exp(np.array([2.5, 0.5, -1.0]))  # near pi: the charts must not wrap
+    kf = PoseKalman(CFG)
+    steps, truth = [], []
+    cov = np.diag([1.0] * 3 + [np.radians(4.0) ** 2] * 3)
+    for k in range(90):
+        Rt = R0 @ so3_exp(omega * k * DT)
+        truth.append(Rt)
+        Rm = Rt @ so3_exp(rng.normal(0, np.radians(4.0), 3))
+        if k == 0:
+            kf.init(Rm, np.zeros(3), 0.0, cov)
+        else:
+            kf.predict(k * DT)
+            kf.update(Rm, np.zeros(3), cov, gate=False)
+        steps.append(kf.snapshot())
+    sm = rts_smooth(steps)
+    err_f = [rotation_angle_deg(s.pose[0], R) for s, R in zip(steps, truth)]
+    err_s = [rotation_angle_deg(s.pose[0], R) for s, R in zip(sm, truth)]
+    assert np.mean(err_s[5:-5]) < 0.6 * np.mean(err_f[5:-5]), (np.mean(err_s), np.mean(err_f))
+    assert np.linalg.norm(sm[45].x[9:12] - omega) < 0.3
+    assert all(np.trace(s.P[6:9, 6:9]) <= np.trace(f.P[6:9, 6:9]) + 1e-12 for s, f in zip(sm, steps))
+
+
+def test_segments_are_not_linked():
+    _, meas, steps = _translation_run(n=20)
+    kf = PoseKalman(CFG)
+    kf.init(np.eye(3), meas[10] + 50.0, steps[10].time, MEAS_COV)  # a re-initialisation at frame 10
+    cut = steps[:10] + [kf.snapshot()] + steps[11:]
+    sm = rts_smooth(cut[:10] + [None] + cut[11:])
+    assert np.allclose(sm[9].x, cut[9].x) and sm[10] is None
+    sm = rts_smooth(cut)
+    assert np.allclose(sm[9].x, cut[9].x), "no smoothing across a segment start"
+    assert not np.allclose(sm[5].x, cut[5].x)
+
+
+def test_restart_keeps_the_link_and_the_velocity():
+    _, meas, steps = _translation_run(n=20)
+    kf = PoseKalman(CFG)
+    kf.init(np.eye(3), meas[0], 0.0, MEAS_COV)
+    for k in range(1, 12):
+        kf.predict(k * DT)
+        kf.update(np.eye(3), meas[k], MEAS_COV, gate=False)
+    v = kf.velocity[0]
+    kf.predict(12 * DT)
+    far = meas[12] + np.array([40.0, 0, 0])
+    assert kf.gate(np.eye(3), far, MEAS_COV) > kf.config.gate_chi2
+    kf.restart(np.eye(3), far, MEAS_COV, np.diag([900.0] * 3 + [0.5] * 3))
+    assert np.linalg.norm(kf.pose[1] - far) < 3.0 and kf.snapshot().prior is not None
+    assert np.linalg.norm(kf.velocity[0] - v) < 0.5 * np.linalg.norm(v)
+
+
+def test_lag_smoother_stream():
+    _, _, steps = _translation_run(n=60)
+    full = rts_smooth(steps)
+    sm = LagSmoother(lag=20, chunk=5)
+    got = []
+    for k, s in enumerate(steps):
+        out = sm.push(k, {"p": s, "absent": None})
+        assert len(sm) <= 25
+        got += out
+    assert len(got) == 40 and [i for i, _ in got] == list(range(40))
+    got += sm.flush()
+    assert [i for i, _ in got] == list(range(60)) and all(st["absent"] is None for _, st in got)
+    # a second of future is nearly all a constant-velocity smoother uses
+    err = max(np.linalg.norm(st["p"].x[0:3] - f.x[0:3]) for (_, st), f in zip(got, full))
+    assert err < 0.05, err
+    assert all(np.allclose(st["p"].x, f.x) for (_, st), f in zip(got[40:], full[40:]))
+    causal = LagSmoother(lag=0)
+    assert [st["p"] is s for s in steps[:3] for _, st in causal.push(0, {"p": s})] == [True] * 3
