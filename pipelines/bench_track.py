@@ -1,21 +1,24 @@
-"""Tracking benchmark: tracked-frame cost per part, end-to-end frames/s, and tracking versus per-frame
-estimation on a synthetic clip with ground truth.
+"""Tracking benchmark: per-frame estimation against causal and smoothed tracking on synthetic clips with
+ground truth, in one run.
 
-    python pipelines/bench_track.py [--model CKPT] [--seconds 30] [--fps 30] [--parts wrist,shaft]
-                                    [--clip DIR] [--device cpu|cuda] [--threads N]
-                                    [--keyframe-every N] [--no-kinematic] [--preset P] [--views N]
+    python pipelines/bench_track.py [--model CKPT] [--clip DIR ...] [--seconds 10] [--fps 30] [--seed 3]
+                                    [--parts shaft,wrist,jaw_left,jaw_right] [--device cpu|cuda]
+                                    [--threads N] [--keyframe-every N] [--no-kinematic] [--preset P]
+                                    [--views N] [--lag-s S]
 
-Makes (or reuses, with --clip) a 640x512 synthetic clip of the Large Needle Driver crossed by a second tool
-(``surftrack synth-clip``), keeps the boxes of the chosen parts (default: two, wrist and shaft), then:
+Makes (or reuses, with --clip, repeatable) a 640x512 synthetic clip of the Large Needle Driver crossed by
+a second tool (``surftrack synth-clip``), keeps the boxes of the chosen parts, then per clip:
 
-1. runs the tracker (the main command's code path, MCAP written to a temporary file) and reports the
-   tracked-frame cost per part (LK + PnP + Kalman, frames where the part was propagated by flow), the
-   point-refresh cost, the estimator cost on keyframes, and end-to-end frames/s (decode, tracking, MCAP);
-2. runs the estimator on every frame with the same boxes (no temporal model; the same instrument-level
-   kinematic fit as the tracker's unless ``--no-kinematic``);
-3. prints both against the ground truth side by side: ADD-10 (SurgRIPE diameter, share of frames where
-   the part is visible; a frame without a pose counts as a miss), RE / TE medians, jitter (mean
-   frame-to-frame pose change minus the ground truth's).
+1. runs the tracker causally (the main command's code path with ``--causal``, MCAP to a temporary file):
+   end-to-end frames/s (decode, tracking, MCAP), the tracked-frame cost per part, estimator calls;
+2. smooths that run's filter states exactly as the default run does (:class:`LagSmoother` with the
+   config's ``smooth_lag_s``) and adds the smoothing time to the causal run's to give the default's
+   frames/s (the tracking itself is the same computation);
+3. runs the estimator on every frame with the same boxes (no temporal model; the same instrument-level
+   kinematic fit unless ``--no-kinematic``);
+4. prints the three against the ground truth (:mod:`surftrack.track.clip_eval`): ADD-10 (SurgRIPE
+   diameter, share of visible frames; no pose = miss), RE / TE medians, jitter, path length est / gt,
+   speed error, confidence calibration.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -44,91 +48,24 @@ def _filtered_boxes(clip: Path, parts: list[str], out: Path) -> Path:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", help="checkpoint (default: the bundled model)")
-    ap.add_argument("--clip", help="an existing synth-clip folder (default: make one)")
-    ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--parts", default="wrist,shaft")
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, help="torch intra-op threads")
-    ap.add_argument("--keyframe-every", type=int)
-    ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
-    ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
-    ap.add_argument("--no-kinematic", action="store_true",
-                    help="leave per-part poses as estimated (no instrument-level kinematic fit), in both runs")
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-
-    from surftrack.annotate import AnnotateOptions, annotate_video
+def _per_frame(clip: Path, boxes: Path, model, tcfg, cfg, device: str):
+    """Per-frame estimation (no temporal model) with the best box of each part: (summary, frames/s)."""
+    from surftrack.annotate import match_parts
     from surftrack.io.video import read_video_frames
-    from surftrack.model.checkpoint import load_checkpoint
-    from surftrack.paths import default_model_path
     from surftrack.pose import PoseEstimator
     from surftrack.pose.kinematic import apply_kinematics
-    from surftrack.synth.clip import ClipConfig, make_clip
-    from surftrack.track import PartState, load_track_config
-    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
+    from surftrack.track import PartState
+    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
 
-    tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
-    clip = Path(args.clip) if args.clip else tmp / "clip"
-    if not args.clip:
-        t0 = time.perf_counter()
-        make_clip(clip, "lnd", ClipConfig(seconds=args.seconds, fps=args.fps), seed=args.seed, progress=False)
-        print(f"clip: {args.seconds:g} s at {args.fps:g} fps, 640x512, made in {time.perf_counter() - t0:.0f} s ({clip})")
-    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
-    boxes = _filtered_boxes(clip, parts, tmp / "det.json")
-    model_path = Path(args.model) if args.model else default_model_path()
-    cfg = load_track_config()
-    if args.keyframe_every:
-        cfg = cfg.replace(keyframe_every=args.keyframe_every)
-    if args.no_kinematic:
-        cfg = cfg.replace(kinematic=False)
-    if args.preset:
-        cfg = cfg.replace(preset=args.preset)
-    if args.views:
-        cfg = cfg.replace(views=args.views)
-    gt = ClipGroundTruth(clip / "gt.json")
-
-    # 1. tracking
-    score = TrackScore(gt)
-    flow_ms, refresh_ms, est_ms = {}, [], []
-
-    def on_frame(index, time_s, states):
-        score.add_frame(index, time_s, states)
-        for s in states:
-            if s.status == "tracking" and "flow_ms" in s.info:
-                flow_ms.setdefault(s.spec.part, []).append(s.info["flow_ms"])
-            if "refresh_ms" in s.info:
-                refresh_ms.append(s.info["refresh_ms"])
-            if "estimator_ms" in s.info:
-                est_ms.append(s.info["estimator_ms"])
-
-    # joints off: the per-frame kinematic fit is its own output (about 35 ms a frame), timed apart below
-    opts = AnnotateOptions(model=model_path, camera=clip / "camera.json", out=tmp / "track.mcap", config=cfg,
-                           device=args.device, progress=False, joints=False)
-    run = annotate_video(clip / "video.mp4", boxes, opts, on_frame=on_frame)
-    track_summary = score.summary()
-
-    # 2. per-frame estimation with the same boxes
-    model, tcfg, _ = load_checkpoint(model_path, args.device)
-    est = PoseEstimator(model, cfg.estimator_preset(), device=args.device, crop_size=tcfg.data.crop,
+    est = PoseEstimator(model, cfg.estimator_preset(), device=device, crop_size=tcfg.data.crop,
                         box_scale=tcfg.data.scale)
     K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
     det = json.loads(boxes.read_text())
     per_frame = {f["index"]: f["detections"] for f in det["frames"]}
-    specs = {}
-    from surftrack.annotate import match_parts
-
-    for s in match_parts(det, model, str(boxes))[0]:
-        specs[s.track_id] = s
+    specs = {s.track_id: s for s in match_parts(det, model, str(boxes))[0]}
     kin = cfg.kinematic_config()
-    score_est = TrackScore(gt)
-    t0 = time.perf_counter()
-    n = 0
+    score = TrackScore(ClipGroundTruth(clip / "gt.json"))
+    t0, n = time.perf_counter(), 0
     for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
         best = {}
         for d in per_frame.get(index, []):
@@ -139,37 +76,120 @@ def main(argv: list[str] | None = None) -> int:
         if kin is not None:
             res = apply_kinematics(res, [specs[p].instance for p in pids], model.parts, kin)
         got = {p: r for p, r in zip(pids, res) if r.ok}
-        states = [PartState(s, "keyframe" if p in got else "lost", 1.0 if p in got else 0.0,
+        states = [PartState(s, "keyframe" if p in got else "lost",
+                            float(1.0 - np.exp(-max(got[p].score, 0.0))) if p in got else 0.0,
                             got[p].R if p in got else None, got[p].t if p in got else None, None)
                   for p, s in specs.items()]
-        score_est.add_frame(index, t_s, states)
+        score.add_frame(index, t_s, states)
         n += 1
-    est_wall = time.perf_counter() - t0
-    est_summary = score_est.summary()
+    return score.summary(), n / (time.perf_counter() - t0)
 
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", help="checkpoint (default: the bundled model)")
+    ap.add_argument("--clip", action="append", help="an existing synth-clip folder (repeatable; default: make one)")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--parts", default="shaft,wrist,jaw_left,jaw_right")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, help="torch intra-op threads")
+    ap.add_argument("--keyframe-every", type=int)
+    ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
+    ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
+    ap.add_argument("--lag-s", type=float, help="smoothing lag (default: the tracking config's)")
+    ap.add_argument("--no-kinematic", action="store_true",
+                    help="leave per-part poses as estimated (no instrument-level kinematic fit), in every run")
+    ap.add_argument("--no-per-frame", action="store_true", help="skip per-frame estimation (tuning runs)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.model.checkpoint import load_checkpoint
+    from surftrack.paths import default_model_path
+    from surftrack.synth.clip import ClipConfig, make_clip
+    from surftrack.track import load_track_config
+    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
+    from surftrack.track.smoother import LagSmoother
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
+    clips = [Path(c) for c in args.clip or []]
+    if not clips:
+        clips = [tmp / "clip"]
+        t0 = time.perf_counter()
+        make_clip(clips[0], "lnd", ClipConfig(seconds=args.seconds, fps=args.fps), seed=args.seed, progress=False)
+        print(f"clip: {args.seconds:g} s at {args.fps:g} fps, seed {args.seed}, 640x512, made in "
+              f"{time.perf_counter() - t0:.0f} s ({clips[0]})")
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    model_path = Path(args.model) if args.model else default_model_path()
+    cfg = load_track_config()
+    for key in ("keyframe_every", "preset", "views"):
+        if getattr(args, key):
+            cfg = cfg.replace(**{key: getattr(args, key)})
+    if args.lag_s is not None:
+        cfg = cfg.replace(smooth_lag_s=args.lag_s)
+    if args.no_kinematic:
+        cfg = cfg.replace(kinematic=False)
+    model, tcfg, _ = load_checkpoint(model_path, args.device)
     on_gpu = torch.device(args.device).type == "cuda"
     dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
-    print(f"\nmodel {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), "
-          f"keyframe every {cfg.keyframe_every} frames, "
-          f"kinematic fit {'on' if cfg.kinematic else 'off'}, device {dev}")
-    print(f"frames: {run['frames']}; tracking end to end (decode, tracker, MCAP) {run['fps']:.1f} frames/s, "
-          f"the tracker alone {run['track_ms_per_frame']:.1f} ms/frame; per-frame estimation (decode, estimator) "
-          f"{n / est_wall:.2f} frames/s = {1e3 * est_wall / n:.1f} ms/frame -> tracking "
-          f"{run['fps'] / (n / est_wall):.1f}x faster end to end, {1e3 * est_wall / n / run['track_ms_per_frame']:.1f}x "
-          f"comparing the tracker with the estimator")
-    for part, v in sorted(flow_ms.items()):
-        print(f"tracked-frame cost (LK + PnP + KF), {part}: median {statistics.median(v):.2f} ms, "
-              f"p90 {np.percentile(v, 90):.2f} ms over {len(v)} frames")
-    if refresh_ms:
-        print(f"flow point refresh: median {statistics.median(refresh_ms):.2f} ms ({len(refresh_ms)} refreshes)")
-    if est_ms:
-        print(f"estimator on keyframes: median {statistics.median(est_ms):.0f} ms per part ({len(est_ms)} calls)")
-    for name, p in run["parts"].items():
-        print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items())))
-    print("\ntracking:")
-    print(format_summary(track_summary), end="")
-    print("per-frame estimation:")
-    print(format_summary(est_summary), end="")
+    print(f"model {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), keyframe every "
+          f"{cfg.keyframe_every} frames at most, kinematic fit {'on' if cfg.kinematic else 'off'}, smoothing lag "
+          f"{cfg.smooth_lag_s:g} s, parts {', '.join(parts)}, device {dev}")
+
+    for clip in clips:
+        boxes = _filtered_boxes(clip, parts, tmp / f"{clip.name}.det.json")
+        gt = ClipGroundTruth(clip / "gt.json")
+        fps = json.loads((clip / "gt.json").read_text()).get("fps") or args.fps
+        causal, smoothed = TrackScore(gt), TrackScore(gt)
+        flow_ms, est_calls, kinds = {}, Counter(), Counter()
+        smoother = LagSmoother(round(cfg.smooth_lag_s * fps))
+        smooth_s = 0.0
+
+        def score_smoothed(ready):
+            for (index, time_s, states), steps in ready:
+                smoothed.add_frame(index, time_s, [s.with_step(steps.get(s.spec.name)) for s in states])
+
+        def on_frame(index, time_s, states):
+            nonlocal smooth_s
+            causal.add_frame(index, time_s, states)
+            for s in states:
+                kinds[s.status] += 1
+                if s.status == "tracking" and "flow_ms" in s.info:
+                    flow_ms.setdefault(s.spec.part, []).append(s.info["flow_ms"])
+                if "estimator" in s.info:
+                    est_calls[s.info["estimator"]] += 1
+            t0 = time.perf_counter()
+            ready = smoother.push((index, time_s, states), {s.spec.name: s.filter_step for s in states})
+            smooth_s += time.perf_counter() - t0
+            score_smoothed(ready)
+
+        # joints off: the per-frame kinematic fit is its own output (about 35 ms a frame), not tracking
+        opts = AnnotateOptions(model=model_path, camera=clip / "camera.json", out=tmp / "track.mcap",
+                               config=cfg.replace(smooth_lag_s=0.0), device=args.device, progress=False,
+                               joints=False)
+        run = annotate_video(clip / "video.mp4", boxes, opts, on_frame=on_frame, checkpoint=(model, tcfg))
+        t0 = time.perf_counter()
+        ready = smoother.flush()
+        smooth_s += time.perf_counter() - t0
+        score_smoothed(ready)
+        fps_smoothed = run["frames"] / (run["seconds"] + smooth_s)
+        print(f"\n## {clip} ({run['frames']} frames)\n")
+        print(f"tracking end to end (decode, tracker, MCAP): causal {run['fps']:.2f} frames/s, smoothed "
+              f"{fps_smoothed:.2f} frames/s (smoothing {1e3 * smooth_s / run['frames']:.1f} ms/frame); "
+              f"part-frames: " + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())))
+        print("estimator runs: " + ", ".join(f"{k} {v}" for k, v in est_calls.most_common()))
+        for part, v in sorted(flow_ms.items()):
+            print(f"tracked-frame cost (LK + PnP + KF), {part}: median {statistics.median(v):.2f} ms over {len(v)} frames")
+        if not args.no_per_frame:
+            est_summary, est_fps = _per_frame(clip, boxes, model, tcfg, cfg, args.device)
+            print(f"per-frame estimation (decode, estimator{', kinematic fit' if cfg.kinematic else ''}): "
+                  f"{est_fps:.2f} frames/s -> smoothed tracking {fps_smoothed / est_fps:.1f}x faster")
+            print("\nper-frame estimation:\n" + format_summary(est_summary), end="")
+        print("\ncausal tracking (--causal):\n" + format_summary(causal.summary()), end="")
+        print("\nsmoothed tracking (default):\n" + format_summary(smoothed.summary()), end="")
     return 0
 
 

@@ -28,11 +28,10 @@ from surftrack.instruments import BUILTIN, JOINT_NAMES, InstrumentRegistry
 from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.smoother import LagSmoother
+from surftrack.track.status import Status
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
-STATUS_COLOURS = {"keyframe": (0.0, 0.9, 1.0, 1.0), "tracking": (0.1, 1.0, 0.2, 1.0),
-                  "predicted": (1.0, 0.85, 0.0, 1.0)}
 
 
 @dataclass
@@ -122,6 +121,13 @@ def _frame_boxes(doc: dict, cam) -> dict[int, dict[int, list]]:
     return out
 
 
+def _rgba(status: Status) -> tuple[float, float, float, float]:
+    """The overlay's colour of a status as RGBA in [0, 1] (MCAP annotations)."""
+    from surftrack.io.overlay import STATUS_COLORS
+
+    return (*(c / 255.0 for c in STATUS_COLORS[status]), 1.0)
+
+
 def _uncertainty(s: PartState) -> dict:
     """Per-axis standard deviations of a part's pose (mm; body rotation, deg) and its velocity (camera
     frame, mm/s; body angular velocity, deg/s) from its filter state, for the status message."""
@@ -143,7 +149,7 @@ def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
         if s.box is not None:
             x, y, w, h = s.box
             points.append({"points": [(x, y), (x + w, y), (x + w, y + h), (x, y + h)], "type": "line_loop",
-                           "color": STATUS_COLOURS.get(s.status, (0.6, 0.6, 0.6, 1.0)), "thickness": 1.0})
+                           "color": _rgba(s.status), "thickness": 1.0})
         if s.R is None:
             continue
         # OpenCV puts pixel centres on integers, Foxglove on half-integers (its origin is the top-left

@@ -118,16 +118,19 @@ class _GroundTruthEstimator:
 @pytest.mark.parametrize("kinematic", [True, False])
 def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt, kinematic):
     """A shaft track rolled 15 deg about its axis, re-estimated with the same wrong roll: with the
-    kinematic fit the tracker takes the shaft pose the wrist and jaws imply as it is (the
-    're-initialised' branch; fused with the filter's confident track it would stay near the wrong roll),
-    without it the wrong roll stays."""
+    kinematic fit the tracker fuses the shaft pose the wrist and jaws imply, and the track converges to it
+    over the next keyframes (a measurement, weighed against the track, not a reset); without it the wrong
+    roll stays."""
     from surftrack.model import load_checkpoint
 
     model = load_checkpoint(tiny_ckpt)[0]
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     frames = _frames(clip)
-    i = max(range(1, len(frames)), key=lambda k: min(gt.pose(k, tid)[2] for tid in lnd_parts.values()))
-    assert min(gt.pose(i, tid)[2] for tid in lnd_parts.values()) > 50, "a frame showing every LND part"
+    n = 4
+    i = max(range(1, len(frames) - n), key=lambda k: min(gt.pose(j, tid)[2] for tid in lnd_parts.values()
+                                                        for j in range(k, k + n)))
+    assert min(gt.pose(j, tid)[2] for tid in lnd_parts.values() for j in range(i, i + n)) > 50, \
+        "frames showing every LND part"
     est = _GroundTruthEstimator(model, gt, lnd_parts, 15.0)
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
     tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, kinematic=kinematic))
@@ -136,16 +139,17 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         tracker.set_pose(lnd_parts[p.name], R @ est.roll if p.name == "shaft" else R, t, (i - 1) / 10.0)
     est.frame = i - 1
     tracker.step(frames[i - 1], (i - 1) / 10.0, None)
-    est.frame = i
-    states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, None)}
-    shaft = states["shaft"]
-    assert shaft.status == "keyframe" and shaft.info["estimator"] == "cadence"
-    assert shaft.info["kinematic"] == kinematic  # the status says whose pose it is
-    re, te = pose_distance(shaft.R, shaft.t, *gt.pose(i, lnd_parts["shaft"])[:2])
+    errors = []
+    for j in range(i, i + n):
+        est.frame = j
+        shaft = next(s for s in tracker.step(frames[j], j / 10.0, None) if s.spec.part == "shaft")
+        assert shaft.status == "keyframe" and shaft.info["estimator"] == "cadence"
+        assert shaft.info["kinematic"] == kinematic  # the status says whose pose it is
+        errors.append(pose_distance(shaft.R, shaft.t, *gt.pose(j, lnd_parts["shaft"])[:2])[0])
     if kinematic:
-        assert re < 1.0 and te < 0.5, (re, te)
+        assert all(b < a for a, b in zip(errors, errors[1:])) and errors[-1] < 5.0, errors
     else:
-        assert re > 12.0, re
+        assert min(errors) > 10.0, errors
 
 
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):

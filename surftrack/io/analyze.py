@@ -5,7 +5,9 @@
 * ``/parts/<name>/pose`` (``foxglove.PoseInFrame``, metres; converted back to millimetres here),
 * ``/parts/<name>/status`` (``surftrack.PartStatus``): a frame counts as tracked when the part has a
   pose at that time and its status there, if one was logged, is in ``tracked_statuses`` (by default
-  "keyframe" and "tracking": measured poses; "predicted" ones are the filter's extrapolation),
+  every status with a pose: "keyframe" and "tracking" are measured, "predicted" ones are carried by the
+  filter, interpolated from both sides in a smoothed run; pass :data:`~surftrack.track.MEASURED` for the
+  measured ones only),
 * ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees).
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
@@ -28,6 +30,8 @@ from typing import Iterable
 import numpy as np
 from mcap.reader import make_reader
 from mcap.writer import MCAP0_MAGIC as MCAP_MAGIC
+
+from surftrack.track.status import POSED
 
 __all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
 
@@ -81,7 +85,7 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     }
 
 
-def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = ("keyframe", "tracking")) -> dict:
+def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSED) -> dict:
     """Summary of a TrackWriter MCAP file::
 
         {"file": str,

@@ -36,21 +36,22 @@ import numpy as np
 
 from surftrack.geometry import project_points, se3, transform_points
 from surftrack.io.video import VideoWriter
+from surftrack.track.status import Status
 
 __all__ = [
-    "AXIS_COLORS", "NEAR_MM", "OverlayWriter", "PartOverlay", "STATUSES", "STATUS_COLORS", "draw_overlay",
+    "AXIS_COLORS", "NEAR_MM", "OverlayWriter", "PartOverlay", "STATUS_COLORS", "draw_overlay",
     "mesh_outline", "project_axes",
 ]
 
 NEAR_MM = 1.0
-STATUSES = ("init", "keyframe", "tracking", "predicted", "lost")
-# RGB; "lost" colours only the label and the legend line: a lost part gets no outline and no axes.
-STATUS_COLORS: dict[str, tuple[int, int, int]] = {
-    "init": (255, 150, 0),
-    "keyframe": (0, 230, 255),
-    "tracking": (60, 255, 60),
-    "predicted": (255, 230, 0),
-    "lost": (255, 70, 70),
+# RGB, also the MCAP annotations' colours; "lost" colours only the label and the legend line: a lost part
+# gets no outline and no axes.
+STATUS_COLORS: dict[Status, tuple[int, int, int]] = {
+    Status.INIT: (255, 150, 0),
+    Status.KEYFRAME: (0, 230, 255),
+    Status.TRACKING: (60, 255, 60),
+    Status.PREDICTED: (255, 230, 0),
+    Status.LOST: (255, 70, 70),
 }
 AXIS_COLORS = ((255, 40, 40), (40, 230, 40), (40, 110, 255))  # x, y, z (RGB)
 BOX_COLOR = (170, 170, 170)
@@ -351,7 +352,7 @@ def mesh_outline(K: np.ndarray, R: np.ndarray, t_mm: np.ndarray, vertices_mm: np
 class PartOverlay:
     """What the overlay shows of one part in one frame.
 
-    ``status`` is one of :data:`STATUSES`; ``confidence`` in [0, 1]. ``R`` (3, 3) and ``t`` (3,) mm are the
+    ``status`` is a :class:`~surftrack.track.status.Status` (or its value); ``confidence`` in [0, 1]. ``R`` (3, 3) and ``t`` (3,) mm are the
     model-to-camera pose, both None when there is none. ``box`` = (x, y, w, h) is a pixel-EDGE box covering
     [x, x + w] x [y, y + h] (the full image is (0, 0, W, H)). ``mesh`` = (vertices mm (N, 3), faces (M, 3))
     in the part frame, for the outline (an object with ``.vertices`` and ``.faces``, such as a
@@ -370,8 +371,9 @@ class PartOverlay:
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"part name must be a non-empty string, got {self.name!r}")
-        if self.status not in STATUSES:
-            raise ValueError(f"part {self.name!r}: status must be one of {STATUSES}, got {self.status!r}")
+        if self.status not in STATUS_COLORS:
+            raise ValueError(f"part {self.name!r}: status must be one of {[str(x) for x in Status]}, "
+                             f"got {self.status!r}")
         c = float(self.confidence)
         if not 0.0 <= c <= 1.0:
             raise ValueError(f"part {self.name!r}: confidence must lie in [0, 1], got {self.confidence!r}")

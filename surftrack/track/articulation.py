@@ -25,9 +25,8 @@ from surftrack.instruments import (
     fit_configuration,
     load_instrument,
 )
+from surftrack.track.status import POSED
 from surftrack.track.tracker import PartState
-
-POSED = ("keyframe", "tracking", "predicted")
 
 
 class ArticulationTracker:

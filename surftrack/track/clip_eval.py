@@ -5,6 +5,12 @@ streams (feed it from ``annotate_video(on_frame=...)``) and reports RE, TE, ADD,
 SurgRIPE diameter: the model's bounding-box diagonal, the convention of the paper's tables), the share
 of frames with a pose while the part is visible, and jitter: the mean frame-to-frame pose change minus
 the ground truth's (mm, deg), over consecutive frames that both have a pose.
+
+Kinematics: path length (sum of the frame-to-frame translation of the part's origin) estimated and true
+over the same pairs of consecutive visible frames with a pose, and the speed error: the median over
+those pairs of |estimated - true speed|, relative to the median true speed. Confidence calibration:
+ADD-10 of the frames whose confidence is >= 0.5 and of those below, and Spearman's rank correlation
+between confidence and ADD (negative when confidence predicts error).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from surftrack.eval import add, diameter_bbox_diagonal, re, te
 from surftrack.track.flow import pose_distance
@@ -57,10 +64,11 @@ class TrackScore:
                 self._pts[name] = v if len(v) <= 2000 else v[np.random.default_rng(0).choice(len(v), 2000, False)]
                 self._diam[name] = diameter_bbox_diagonal(v)
             row = self.rows.setdefault(name, {"re": [], "te": [], "add": [], "visible": 0, "posed": 0,
-                                              "jit_t": [], "jit_r": []})
+                                              "jit_t": [], "jit_r": [], "conf": [], "step_est": [],
+                                              "step_gt": []})
             Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
             prev = self._prev.get(name)
-            self._prev[name] = (index, s.R, s.t, Rg, tg)
+            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s)
             if vis < self.min_visible_px:
                 continue
             row["visible"] += 1
@@ -70,19 +78,33 @@ class TrackScore:
             row["re"].append(re(s.R, Rg))
             row["te"].append(te(s.t, tg))
             row["add"].append(add(s.R, s.t, Rg, tg, self._pts[name]))
+            row["conf"].append(s.confidence)
             if prev is not None and prev[0] == index - 1 and prev[1] is not None:
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
                 gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
                 row["jit_r"].append(dr - gr)
                 row["jit_t"].append(dt - gt_)
+                dt_s = time_s - prev[5]
+                row["step_est"].append((dt, dt_s))
+                row["step_gt"].append(gt_)
 
     def summary(self) -> dict[str, dict]:
         """Per part: frames visible / with a pose, RE and TE medians, ADD mean, ADD-10 (%, over visible
-        frames: a frame without a pose counts as a miss), jitter (mm, deg)."""
+        frames: a frame without a pose counts as a miss), jitter (mm, deg), path length estimated / true
+        (mm), speed error (%), confidence calibration (see the module docstring)."""
         out = {}
         for name, r in self.rows.items():
             n = max(r["visible"], 1)
             ok = sum(a < 0.1 * self._diam[name] for a in r["add"])
+            hit = np.asarray(r["add"]) < 0.1 * self._diam[name]
+            conf = np.asarray(r["conf"])
+            est = np.array([d for d, _ in r["step_est"]])
+            true = np.asarray(r["step_gt"])
+            dts = np.array([t for _, t in r["step_est"]])
+            speed_err = (100.0 * float(np.median(np.abs(est - true) / dts) / np.median(true / dts))
+                         if len(true) and np.median(true) > 0 else float("nan"))
+            rho = (float(spearmanr(conf, r["add"]).statistic)
+                   if len(conf) > 2 and np.ptp(conf) > 0 and np.ptp(r["add"]) > 0 else float("nan"))
             out[name] = {
                 "visible_frames": r["visible"], "posed_frames": r["posed"],
                 "re_median_deg": float(np.median(r["re"])) if r["re"] else float("nan"),
@@ -92,16 +114,26 @@ class TrackScore:
                 "jitter_mm": float(np.mean(r["jit_t"])) if r["jit_t"] else float("nan"),
                 "jitter_deg": float(np.mean(r["jit_r"])) if r["jit_r"] else float("nan"),
                 "diameter_mm": self._diam[name],
+                "path_mm": float(est.sum()), "path_gt_mm": float(true.sum()),
+                "path_ratio": float(est.sum() / true.sum()) if true.sum() > 0 else float("nan"),
+                "speed_err_pct": speed_err,
+                "add10_conf_hi_pct": 100.0 * float(hit[conf >= 0.5].mean()) if (conf >= 0.5).any() else float("nan"),
+                "add10_conf_lo_pct": 100.0 * float(hit[conf < 0.5].mean()) if (conf < 0.5).any() else float("nan"),
+                "conf_hi_share_pct": 100.0 * float((conf >= 0.5).mean()) if len(conf) else float("nan"),
+                "conf_add_spearman": rho,
             }
         return out
 
 
 def format_summary(summary: dict[str, dict]) -> str:
     """A markdown table of :meth:`TrackScore.summary`."""
-    lines = ["| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) "
+             "| path est / gt (mm) | speed err (%) | ADD-10 conf >= / < 0.5 (%, share >=) | rho(conf, ADD) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in summary.items():
         lines.append(f"| {name} | {r['visible_frames']} | {r['posed_frames']} | {r['re_median_deg']:.1f} | "
                      f"{r['te_median_mm']:.1f} | {r['add_mean_mm']:.1f} | {r['add10_pct']:.1f} | "
-                     f"{r['jitter_mm']:.2f} / {r['jitter_deg']:.2f} |")
+                     f"{r['jitter_mm']:.2f} / {r['jitter_deg']:.2f} | {r['path_mm']:.0f} / {r['path_gt_mm']:.0f} "
+                     f"= {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} | {r['add10_conf_hi_pct']:.0f} / "
+                     f"{r['add10_conf_lo_pct']:.0f} ({r['conf_hi_share_pct']:.0f}) | {r['conf_add_spearman']:.2f} |")
     return "\n".join(lines) + "\n"

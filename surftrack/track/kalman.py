@@ -55,28 +55,33 @@ CHI2_6DOF_999 = 22.46
 class KalmanConfig:
     """Noise settings; defaults aimed at da Vinci instruments seen by an endoscope at ~30 fps.
 
-    * ``accel_std_mm_s2 = 200``: instrument tips typically move at ~10-50 mm/s (peaks ~100 mm/s) and
-      change velocity within ~0.2-0.5 s, i.e. accelerations of ~100-300 mm/s^2. At dt = 1/30 s this gives
-      ~0.7 mm of position process std per frame (about a quarter of the measurement noise), so the filter
-      smooths estimator jitter but follows real motion changes within a few frames.
-    * ``ang_accel_std_rad_s2 = 5``: wrist / shaft roll reaches ~1-3 rad/s, with changes within ~0.3 s.
+    * ``accel_std_mm_s2 = 30``: instruments mostly glide (synthetic clips: median speed 2-8 mm/s, median
+      acceleration 1-25 mm/s^2) with occasional fast moves (p90 acceleration 180-410 mm/s^2, peaks
+      ~1000). The white-noise acceleration level sets how much the filter and above all the smoother
+      average: at 30 fps per-frame estimates with ~3 mm noise, 200 left path lengths 1.3-2x the truth
+      after smoothing, 20-30 brings them within ~0.8-1.25x; a fast move beyond it is caught by the gate
+      (``max_rejections`` estimates in a row that disagree restart the pose). Tuned on clip seed 3
+      (docs/results/2026-12-02-tracking.md).
+    * ``ang_accel_std_rad_s2 = 3``: wrist / shaft roll reaches ~1-3 rad/s; 5 let the estimator's shaft roll
+      flips through on the tuning clip.
     * ``meas_pos_std_mm = 3``, ``meas_rot_std_deg = 3``: typical per-frame pose-estimator errors for a part
       of ~10-50 mm at endoscope distances (depth is worse than lateral; pass a full ``meas_cov`` to
       ``update`` when the estimator provides one).
     * ``init_vel_std_mm_s = 100``, ``init_omega_std_rad_s = 2``: uncertainty of the unknown initial
       velocities.
-    * ``gate_chi2 = 22.46``: chi2 with 6 dof at 99.9 %; ``max_rejections = 5`` consecutive rejections mark
-      the track as lost (re-initialise from the estimator).
+    * ``gate_chi2 = 22.46``: chi2 with 6 dof at 99.9 %; ``max_rejections = 8`` consecutive rejections mark
+      the track as lost (re-initialise from the estimator): the estimator's single outliers (a flipped jaw,
+      the shaft's roll) come in short runs, a real fast move persists.
     """
 
-    accel_std_mm_s2: float = 200.0
-    ang_accel_std_rad_s2: float = 5.0
+    accel_std_mm_s2: float = 30.0
+    ang_accel_std_rad_s2: float = 3.0
     meas_pos_std_mm: float = 3.0
     meas_rot_std_deg: float = 3.0
     gate_chi2: float = CHI2_6DOF_999
     init_vel_std_mm_s: float = 100.0
     init_omega_std_rad_s: float = 2.0
-    max_rejections: int = 5
+    max_rejections: int = 8
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -1,12 +1,6 @@
 """Per-part tracking state machine: the estimator initialises and recovers, flow + Kalman filter propagate.
 
-Every part has a status on every frame:
-
-* ``init``: not seen yet (no usable box so far);
-* ``keyframe``: the estimator ran this frame and its pose was taken (fused into the filter);
-* ``tracking``: a flow measurement (LK + PnP) was accepted by the filter;
-* ``predicted``: the filter extrapolated (no acceptable measurement this frame);
-* ``lost``: no pose (no box and nothing to track, the part left the image, or recovery failed).
+Every part has a :class:`~.status.Status` on every frame.
 
 The estimator runs for a part when it has a box and no track, and for a tracked part on the keyframe
 cadence, after ``max_predicted`` frames without a measurement, when the filter's gate locks out
@@ -15,8 +9,10 @@ hands its pose to the estimator as a prior, so a keyframe never replaces a pose 
 better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
 appearance is enough. All parts needing the estimator in a frame share one batched call, and the poses
 it returns for the parts of one instrument are made consistent with the instrument's kinematics
-(``TrackConfig.kinematic``; :mod:`surftrack.pose.kinematic`): a part the fit moves by more than the
-estimator's noise is re-initialised there, since its anchor part is far more reliable than its own flow.
+(``TrackConfig.kinematic``; :mod:`surftrack.pose.kinematic`). An estimator pose is a measurement of the
+part's filter, gated like any other: a single disagreement is more often the estimator's outlier than a
+real jump and is left out; ``kalman.max_rejections`` in a row restart the pose there (widening the
+prediction, so a smoothed run keeps the track in one piece, :meth:`PoseKalman.restart`).
 """
 
 from __future__ import annotations
@@ -38,8 +34,8 @@ from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
 from surftrack.track.kalman import FilterStep, PoseKalman
+from surftrack.track.status import POSED, Status
 
-STATUSES = ("init", "keyframe", "tracking", "predicted", "lost")
 
 
 @dataclass(frozen=True)
@@ -68,7 +64,7 @@ class PartState:
     was replaced by the instrument fit's pose)."""
 
     spec: PartSpec
-    status: str
+    status: Status
     confidence: float
     R: np.ndarray | None
     t: np.ndarray | None
@@ -118,7 +114,7 @@ class _Track:
     def __init__(self, spec: PartSpec, cfg: TrackConfig):
         self.spec, self.cfg = spec, cfg
         self.kf = PoseKalman(cfg.kalman)
-        self.status = "init"
+        self.status = Status.INIT
         self.confidence = 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         self.n_points_fresh = 0
@@ -135,12 +131,12 @@ class _Track:
 
     @property
     def has_pose(self) -> bool:
-        return self.status in ("keyframe", "tracking", "predicted")
+        return self.status in POSED
 
     def drop(self) -> None:
         self.kf = PoseKalman(self.cfg.kalman)
         self.unseen = 0
-        self.status, self.confidence = "lost", 0.0
+        self.status, self.confidence = Status.LOST, 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
 
@@ -215,7 +211,7 @@ class Tracker:
             raise KeyError(f"no part with track id {track_id}")
         tr.kf = PoseKalman(self.cfg.kalman)
         tr.kf.init(np.asarray(R, np.float64), np.asarray(t, np.float64), time_s - 1e-6, self._est_cov)
-        tr.status, tr.confidence = "keyframe", 1.0
+        tr.status, tr.confidence = Status.KEYFRAME, 1.0
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
@@ -232,6 +228,12 @@ class Tracker:
         gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
         # 1. propagate tracked parts: predict, flow, PnP, gated update. LK runs once for the points of
         # all parts (one image pyramid per frame), its time shared out by point count.
+        # a part the estimator measures this frame anyway (its cadence is due) gets no flow measurement:
+        # flow's error repeats the pose its points were lifted at, and fused next to the estimator it
+        # pulls the track back towards its own drift
+        for tr in self.tracks:
+            if tr.has_pose and tr.since_keyframe + 1 >= cfg.keyframe_every:
+                tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         moving = [tr for tr in self.tracks if tr.has_pose and not tr.seeded and len(tr.points)]
         lk_ms = {}
         if self.prev_gray is not None and moving:
@@ -274,11 +276,11 @@ class Tracker:
                     accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor + tr.lift_cov)
                     tr.info["d2"] = tr.kf.last_d2
             if accepted:
-                tr.status, tr.since_meas = "tracking", 0
+                tr.status, tr.since_meas = Status.TRACKING, 0
                 tr.confidence = float(meas.inlier_ratio * np.exp(-meas.rms_px / 2.0)
                                       * min(1.0, meas.inliers.sum() / 20.0))
             else:
-                tr.status, tr.since_meas = "predicted", tr.since_meas + 1
+                tr.status, tr.since_meas = Status.PREDICTED, tr.since_meas + 1
                 tr.confidence *= 0.7
             tr.info["flow_ms"] = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
         # 2. decide who needs the estimator
@@ -309,7 +311,7 @@ class Tracker:
                 if why is not None:
                     requests.append((tr, det if det is not None else pbox, tr.kf.pose, why))
             elif det is not None:
-                requests.append((tr, det, None, "init" if tr.status == "init" else "reappearance"))
+                requests.append((tr, det, None, "init" if tr.status == Status.INIT else "reappearance"))
         # 3. one batched estimator call
         if requests:
             t_est = time.perf_counter()
@@ -328,24 +330,27 @@ class Tracker:
                 if good:
                     tr.unseen = 0
                 if tr.has_pose and good:
-                    moved = self._moved(res, prior)
-                    if res.counts.get("prior_won") and not moved:
+                    if res.counts.get("prior_won") and not self._moved(res, prior):
                         # the tracked pose explains the image best: a confirmation, not a new measurement
                         # (fusing the filter's own pose again would shrink its covariance for nothing)
-                        tr.status, tr.confidence = "keyframe", max(conf, tr.confidence)
-                    elif moved:
-                        # placed by the instrument's kinematics from its anchor part, which the estimator
-                        # gets right far more often than flow keeps this part right: take it as it is
+                        tr.status, tr.confidence = Status.KEYFRAME, max(conf, tr.confidence)
+                        tr.since_meas = 0
+                    elif tr.kf.update(res.R, res.t, self._est_cov):
+                        tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
+                        tr.info["d2"] = tr.kf.last_d2
+                    elif tr.kf.lost:
+                        # the estimator has disagreed with the track on max_rejections frames in a row:
+                        # the track is what is wrong
                         tr.kf.restart(res.R, res.t, self._est_cov, self._widen)
-                        tr.status, tr.confidence = "keyframe", conf
+                        tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
                     else:
-                        if not tr.kf.update(res.R, res.t, self._est_cov):
-                            tr.kf.restart(res.R, res.t, self._est_cov, self._widen)  # scored better than the track
-                        tr.status, tr.confidence = "keyframe", conf
-                    tr.since_keyframe, tr.since_meas = 0, 0
+                        # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
+                        # roll) as a fast move: the filter carries the pose and the next frames decide
+                        tr.info["rejected_d2"] = tr.kf.last_d2
+                    tr.since_keyframe = 0
                 elif good:
                     tr.kf.init(res.R, res.t, time_s, self._est_cov)
-                    tr.status, tr.confidence = "keyframe", conf
+                    tr.status, tr.confidence = Status.KEYFRAME, conf
                     tr.since_keyframe, tr.since_meas = 0, 0
                 elif tr.has_pose and res.ok and res.score > 0.0 and (
                         why in ("cadence", "box disagreement") or tr.since_meas < 3 * cfg.max_predicted):
@@ -365,9 +370,9 @@ class Tracker:
                     tr.info["why_lost"] = "not seen by the estimator" if res.score <= 0.0 else "estimator failed"
         # 4. refresh flow points where needed (after all poses of the frame are settled)
         for tr in self.tracks:
-            if tr.status not in ("keyframe", "tracking"):
+            if tr.status not in (Status.KEYFRAME, Status.TRACKING):
                 continue  # never pick points at an unconfirmed (predicted) pose: they may lie on the background
-            stale = (tr.status == "keyframe" or tr.since_refresh >= cfg.refresh_every
+            stale = (tr.status == Status.KEYFRAME or tr.since_refresh >= cfg.refresh_every
                      or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
             if stale:
                 t_ref = time.perf_counter()
