@@ -275,6 +275,37 @@ def test_bundled_model_tracks_the_clip_against_ground_truth(clip, tmp_path):
     assert wrist["re_median_deg"] < 25.0 and wrist["te_median_mm"] < 20.0, wrist
 
 
+def test_a_causal_run_never_reads_a_future_frame_and_a_smoothed_one_waits_for_its_lag(clip, tmp_path, monkeypatch):
+    """The decoder is watched (the real one runs): causal, frame i is written before frame i + 1 is read;
+    smoothed with a 0.5 s lag (5 frames at 10 fps), frame i is written once frame i + 5 has been read, and
+    its pose then differs from the causal one."""
+    import surftrack.annotate as annotate
+
+    decoded = []
+    real = annotate._video_frames
+
+    def watched(path):
+        for item in real(path):
+            decoded.append(item[0])
+            yield item
+
+    monkeypatch.setattr(annotate, "_video_frames", watched)
+    seen = {}
+    for lag in (0.0, 0.5):
+        decoded.clear()
+        rows = seen[lag] = []
+        opts = annotate.AnnotateOptions(camera=clip / "camera.json", out=tmp_path / f"{lag}.mcap", progress=False,
+                                        config=TrackConfig(smooth_lag_s=lag), joints=False)
+        annotate.annotate_video(clip / "video.mp4", clip / "det.json", opts, on_frame=lambda i, t, states: rows.append(
+            (i, len(decoded), {s.spec.part: s.t for s in states if s.t is not None})))
+    n = len(_frames(clip))
+    assert [i for i, _, _ in seen[0.0]] == [i for i, _, _ in seen[0.5]] == list(range(n))
+    assert all(read == i + 1 for i, read, _ in seen[0.0])
+    assert all(read >= min(i + 6, n) for i, read, _ in seen[0.5])
+    moved = [np.linalg.norm(a[p] - b[p]) for (_, _, a), (_, _, b) in zip(seen[0.0], seen[0.5]) for p in a if p in b]
+    assert max(moved) > 0.01 and len(moved) >= n
+
+
 def test_one_box_per_appearance_is_enough(clip, lnd_parts, tmp_path):
     """Sparse boxes: only the first frame of each appearance of the tool keeps its boxes; the tracker
     follows the parts through the frames without boxes and picks the tool up again when it comes back."""
@@ -321,6 +352,19 @@ def test_kinematic_settings_are_checked():
             TrackConfig(kinematic_anchor_weight=bad)
         with pytest.raises(ValueError, match="kinematic_anchor_translation_weight"):
             TrackConfig(kinematic_anchor_translation_weight=bad)
+
+
+def test_smoothing_lag_is_checked_and_causal_is_lag_zero():
+    from surftrack.cli import build_parser
+
+    assert TrackConfig().smooth_lag_s == 1.0 and TrackConfig(smooth_lag_s=0).smooth_lag_s == 0.0
+    for bad in (-0.5, float("inf")):
+        with pytest.raises(ValueError, match="smooth_lag_s must be a finite number >= 0"):
+            TrackConfig(smooth_lag_s=bad)
+    args = build_parser().parse_args(["track", "v.mp4", "--boxes", "d.json", "--causal"])
+    from surftrack.cli import _track_config
+
+    assert _track_config(args).smooth_lag_s == 0.0
 
 
 def test_keyframe_preset_and_views():
