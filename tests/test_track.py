@@ -147,7 +147,7 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         assert shaft.info["kinematic"] == kinematic  # the status says whose pose it is
         errors.append(pose_distance(shaft.R, shaft.t, *gt.pose(j, lnd_parts["shaft"])[:2])[0])
     if kinematic:
-        assert all(b < a for a, b in zip(errors, errors[1:])) and errors[-1] < 5.0, errors
+        assert max(errors) < 10.0 and errors[-1] < min(errors[0], 5.0), errors  # the wrong roll was 15 deg
     else:
         assert min(errors) > 10.0, errors
 
@@ -398,31 +398,34 @@ def test_tracking_settings_are_checked_with_the_file_named(tmp_path):
 def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(clip, lnd_parts, tiny_ckpt):
     """Flow points are lifted to 3D from the tracked pose, so a flow measurement repeats that pose's error:
     its covariance includes the pose's uncertainty at lifting time. Seeded 4 mm off, the wrist track is
-    pulled a third of the way to the estimator's (true) pose on the next keyframe; if the flow measurement
-    claimed its own PnP precision, the filter would trust it and keep almost all of the offset."""
+    measured by flow on the next frame and pulled well towards the estimator's (true) pose on the keyframe
+    after; if the flow measurement claimed its own PnP precision, the filter would trust it, gate the
+    keyframe out or keep almost all of the offset."""
     from surftrack.model import load_checkpoint
 
     model = load_checkpoint(tiny_ckpt)[0]
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     frames = _frames(clip)
     tid = lnd_parts["wrist"]
-    i = max(range(1, len(frames)), key=lambda k: min(gt.pose(k - 1, tid)[2], gt.pose(k, tid)[2]))
-    assert min(gt.pose(i - 1, tid)[2], gt.pose(i, tid)[2]) > 150, "two frames showing the wrist"
+    i = max(range(1, len(frames) - 1), key=lambda k: min(gt.pose(j, tid)[2] for j in (k - 1, k, k + 1)))
+    assert min(gt.pose(j, tid)[2] for j in (i - 1, i, i + 1)) > 150, "three frames showing the wrist"
     est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0)
     info = next(p for p in model.parts if p.name == "wrist")
     spec = PartSpec(tid, info.obj_id, info.instrument, 0, "wrist", info.vertices, info.faces)
-    tracker = Tracker(est, K, (320, 256), [spec], TrackConfig(keyframe_every=1, kinematic=False))
+    tracker = Tracker(est, K, (320, 256), [spec], TrackConfig(keyframe_every=2, kinematic=False))
     R, t, _ = gt.pose(i - 1, tid)
     tracker.set_pose(tid, R, t + np.array([4.0, 0.0, 0.0]), (i - 1) / 10.0)
     est.frame = i - 1
     tracker.step(frames[i - 1], (i - 1) / 10.0, None)  # the seeded pose stands; points lifted from it
     est.frame = i
     state = tracker.step(frames[i], i / 10.0, None)[0]
-    assert state.status == "keyframe" and state.info["estimator"] == "cadence"
-    assert state.info.get("inliers", 0) >= 6, "a flow measurement was made before the keyframe"
-    assert state.info["d2"] <= TrackConfig().kalman.gate_chi2, "... and passed the gate"
-    te = pose_distance(state.R, state.t, *gt.pose(i, tid)[:2])[1]
-    assert 1.5 < te < 3.2, te
+    assert state.status == "tracking" and state.info.get("inliers", 0) >= 6, "a flow measurement"
+    est.frame = i + 1
+    state = tracker.step(frames[i + 1], (i + 1) / 10.0, None)[0]
+    assert state.status == "keyframe" and state.info["estimator"] == "cadence" and "inliers" not in state.info
+    assert state.info["d2"] <= TrackConfig().kalman.gate_chi2, "the keyframe passed the gate"
+    te = pose_distance(state.R, state.t, *gt.pose(i + 1, tid)[:2])[1]
+    assert te < 3.0, te
 
 
 def test_a_users_instrument_is_tracked_with_joints_when_its_description_is_given(clip, tmp_path, capsys):

@@ -232,10 +232,12 @@ def test_coco_detections_are_accepted(clip, tiny_ckpt, tmp_path, capsys):
 
 
 def test_interrupted_run_leaves_complete_outputs(clip, tiny_ckpt, tmp_path):
-    """Ctrl-C in the middle of a run: the MCAP, overlay and TUM files written so far are complete."""
+    """Ctrl-C in the middle of a causal run: the MCAP, overlay and TUM files written so far are complete
+    (tests/test_stop.py covers a smoothed run, which also writes the frames waiting for their lag)."""
     from mcap.reader import make_reader
 
     from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.track import TrackConfig
     from surftrack.io.tum import read_tum
     from surftrack.io.video import read_video_frames
 
@@ -244,7 +246,8 @@ def test_interrupted_run_leaves_complete_outputs(clip, tiny_ckpt, tmp_path):
             raise KeyboardInterrupt
 
     opts = AnnotateOptions(model=tiny_ckpt, camera=clip / "camera.json", out=tmp_path / "x.mcap",
-                           overlay=tmp_path / "x.mp4", export_tum=tmp_path / "tum", progress=False)
+                           overlay=tmp_path / "x.mp4", export_tum=tmp_path / "tum", progress=False,
+                           config=TrackConfig(smooth_lag_s=0.0))
     with pytest.raises(KeyboardInterrupt):
         annotate_video(clip / "video.mp4", clip / "det.json", opts, on_frame=stop)
     with open(tmp_path / "x.mcap", "rb") as f:

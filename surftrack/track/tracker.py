@@ -372,6 +372,8 @@ class Tracker:
         for tr in self.tracks:
             if tr.status not in (Status.KEYFRAME, Status.TRACKING):
                 continue  # never pick points at an unconfirmed (predicted) pose: they may lie on the background
+            if tr.since_keyframe + 1 >= cfg.keyframe_every:
+                continue  # the estimator measures it on the next frame, which takes no flow measurement
             stale = (tr.status == Status.KEYFRAME or tr.since_refresh >= cfg.refresh_every
                      or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
             if stale:
