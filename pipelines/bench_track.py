@@ -4,7 +4,7 @@ ground truth, in one run.
     python pipelines/bench_track.py [--model CKPT] [--clip DIR ...] [--seconds 10] [--fps 30] [--seed 3]
                                     [--parts shaft,wrist,jaw_left,jaw_right] [--device cpu|cuda]
                                     [--threads N] [--keyframe-every N] [--no-kinematic] [--preset P]
-                                    [--views N] [--lag-s S]
+                                    [--views N] [--lag-s S] [--config YAML]
 
 Makes (or reuses, with --clip, repeatable) a 640x512 synthetic clip of the Large Needle Driver crossed by
 a second tool (``surftrack synth-clip``), keeps the boxes of the chosen parts, then per clip:
@@ -98,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframe-every", type=int)
     ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
     ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
+    ap.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     ap.add_argument("--lag-s", type=float, help="smoothing lag (default: the tracking config's)")
     ap.add_argument("--no-kinematic", action="store_true",
                     help="leave per-part poses as estimated (no instrument-level kinematic fit), in every run")
@@ -124,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{time.perf_counter() - t0:.0f} s ({clips[0]})")
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     model_path = Path(args.model) if args.model else default_model_path()
-    cfg = load_track_config()
+    cfg = load_track_config(args.config)
     for key in ("keyframe_every", "preset", "views"):
         if getattr(args, key):
             cfg = cfg.replace(**{key: getattr(args, key)})
