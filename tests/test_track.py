@@ -64,7 +64,7 @@ def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny
     specs = [PartSpec(tid, model.parts[i].obj_id, "large_needle_driver", 0, p, model.parts[i].vertices,
                       model.parts[i].faces)
              for i, (p, tid) in enumerate(sorted(lnd_parts.items(), key=lambda kv: kv[1]))]
-    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000)
+    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000, flow=True)
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     tracker = Tracker(PoseEstimator(model, "fast", device="cpu", crop_size=64), K, (320, 256), specs, cfg)
     score = TrackScore(gt)
@@ -150,6 +150,34 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         assert max(errors) < 10.0 and errors[-1] < min(errors[0], 5.0), errors  # the wrong roll was 15 deg
     else:
         assert min(errors) > 10.0, errors
+
+
+def test_an_instruments_parts_get_their_keyframes_together(clip, lnd_parts, tiny_ckpt):
+    """With the instrument fit, a part whose own keyframe is not due is estimated with the others of its
+    instrument (the fit places each part from the rest); without the fit it waits for its own."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    i = max(range(2, len(frames)), key=lambda k: min(gt.pose(j, tid)[2] for tid in lnd_parts.values()
+                                                     for j in (k - 2, k - 1, k)))
+    est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0)
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    wrist = lnd_parts["wrist"]
+    for kinematic in (True, False):
+        tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=2, kinematic=kinematic))
+        for p in model.parts:
+            tracker.set_pose(lnd_parts[p.name], *gt.pose(i - 2, lnd_parts[p.name])[:2], (i - 2) / 10.0)
+        est.frame = i - 2
+        tracker.step(frames[i - 2], (i - 2) / 10.0, None)
+        tracker.set_pose(wrist, *gt.pose(i - 1, wrist)[:2], (i - 1) / 10.0)  # the wrist's cadence restarts
+        est.frame = i - 1
+        tracker.step(frames[i - 1], (i - 1) / 10.0, None)
+        est.frame = i
+        states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, None)}
+        assert states["shaft"].info["estimator"] == "cadence"
+        assert states["wrist"].info.get("estimator") == ("instrument keyframe" if kinematic else None)
+        assert states["wrist"].status == ("keyframe" if kinematic else "predicted")
 
 
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):
@@ -332,11 +360,12 @@ def test_one_box_per_appearance_is_enough(clip, lnd_parts, tmp_path):
     follow = [i for f in firsts for i in range(f, f + 4) if i < len(visible) and all(visible[f:i + 1])]
     assert all(posed[i] for i in follow), list(zip(statuses, visible))
     assert sum(p and v for p, v in zip(posed, visible)) >= 0.7 * sum(visible), list(zip(statuses, visible))
-    # once the tool is gone: never tracked on the background; the filter may extrapolate a few frames
-    # (until the estimator is asked again and sees nothing), then the part is lost
+    # once the tool is gone: never tracked on the background; the filter may carry it until the next
+    # keyframe (the estimator sees nothing), then the part is lost
     gone = [s for s, v in zip(statuses, visible) if not v]
     assert not {"tracking", "keyframe"} & set(gone), list(zip(statuses, visible))
-    assert gone.count("predicted") <= TrackConfig().max_predicted and gone[-1] == "lost", gone
+    k = TrackConfig().keyframe_every
+    assert gone.count("predicted") <= k and (len(gone) <= k or gone[-1] == "lost"), gone
 
 
 def test_kinematic_settings_are_checked():
@@ -412,7 +441,7 @@ def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(cl
     est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0)
     info = next(p for p in model.parts if p.name == "wrist")
     spec = PartSpec(tid, info.obj_id, info.instrument, 0, "wrist", info.vertices, info.faces)
-    tracker = Tracker(est, K, (320, 256), [spec], TrackConfig(keyframe_every=2, kinematic=False))
+    tracker = Tracker(est, K, (320, 256), [spec], TrackConfig(keyframe_every=2, kinematic=False, flow=True))
     R, t, _ = gt.pose(i - 1, tid)
     tracker.set_pose(tid, R, t + np.array([4.0, 0.0, 0.0]), (i - 1) / 10.0)
     est.frame = i - 1
@@ -502,7 +531,7 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
 
     est = Scripted()
     spec = PartSpec(tid, info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
-    tracker = Tracker(est, _K(clip), (320, 256), [spec], TrackConfig(kinematic=False, max_predicted=1000))
+    tracker = Tracker(est, _K(clip), (320, 256), [spec], TrackConfig(keyframe_every=1, kinematic=False, max_predicted=1000))
     start = next(i for i in range(len(frames)) if gt.pose(i, tid)[2] > 0.5)
     tracker.set_pose(tid, *gt.pose(start, tid)[:2], start / 10.0)
     statuses = []

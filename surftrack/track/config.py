@@ -29,8 +29,11 @@ class TrackConfig:
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
     part whose projected box keeps less than this fraction inside the image is lost.
 
-    Flow: up to ``max_points`` points per part; refreshed from the current pose on keyframes, every
-    ``refresh_every`` frames and when fewer than ``refresh_below`` of them survive. A flow measurement
+    ``flow``: measure parts between keyframes by model-based optical flow (off: the filter carries them and
+    the smoother interpolates between keyframes; LK follows highlights and edges on textureless metal:
+    with a keyframe every 6 frames, flow on scored 28 / 14 / 9 / 11 % ADD-10 against 42 / 40 / 27 / 22 %
+    off on the tuning clip, docs/decisions.md). Up to ``max_points`` points per part; refreshed from the
+    current pose on keyframes, every ``refresh_every`` frames and when fewer than ``refresh_below`` of them survive. A flow measurement
     needs ``min_points`` PnP inliers within ``inlier_px``, an inlier ratio >= ``min_inlier_ratio`` and an
     RMS error <= ``max_rms_px``. Its covariance (from the PnP Jacobian) gets ``flow_floor_mm`` /
     ``flow_floor_deg`` added (model error) and the filter's pose covariance when the points were lifted to
@@ -52,6 +55,7 @@ class TrackConfig:
     preset: str = "fast"
     views: int = 0
     keyframe_every: int = 1
+    flow: bool = False
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3

@@ -232,7 +232,7 @@ class Tracker:
         # flow's error repeats the pose its points were lifted at, and fused next to the estimator it
         # pulls the track back towards its own drift
         for tr in self.tracks:
-            if tr.has_pose and tr.since_keyframe + 1 >= cfg.keyframe_every:
+            if tr.has_pose and (not cfg.flow or tr.since_keyframe + 1 >= cfg.keyframe_every):
                 tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         moving = [tr for tr in self.tracks if tr.has_pose and not tr.seeded and len(tr.points)]
         lk_ms = {}
@@ -304,7 +304,7 @@ class Tracker:
                     why = "box disagreement"
                 elif tr.kf.lost:
                     why = "gate lockout"
-                elif tr.since_meas >= cfg.max_predicted:
+                elif cfg.flow and tr.since_meas >= cfg.max_predicted:
                     why = "no flow measurement"
                 elif tr.since_keyframe >= cfg.keyframe_every:
                     why = "cadence"
@@ -312,6 +312,16 @@ class Tracker:
                     requests.append((tr, det if det is not None else pbox, tr.kf.pose, why))
             elif det is not None:
                 requests.append((tr, det, None, "init" if tr.status == Status.INIT else "reappearance"))
+        if self._kinematic is not None and requests:
+            # the instrument fit places each part from the others estimated in the same call (the wrist
+            # anchors the shaft's roll): an instrument's tracked parts get their keyframes together
+            due = {(tr.spec.instrument, tr.spec.instance) for tr, _, _, _ in requests}
+            asked = {id(tr) for tr, _, _, _ in requests}
+            for tr in self.tracks:
+                box = out_boxes.get(tr.spec.track_id)
+                if (tr.has_pose and id(tr) not in asked and box is not None
+                        and (tr.spec.instrument, tr.spec.instance) in due):
+                    requests.append((tr, box, tr.kf.pose, "instrument keyframe"))
         # 3. one batched estimator call
         if requests:
             t_est = time.perf_counter()
@@ -372,7 +382,7 @@ class Tracker:
         for tr in self.tracks:
             if tr.status not in (Status.KEYFRAME, Status.TRACKING):
                 continue  # never pick points at an unconfirmed (predicted) pose: they may lie on the background
-            if tr.since_keyframe + 1 >= cfg.keyframe_every:
+            if not cfg.flow or tr.since_keyframe + 1 >= cfg.keyframe_every:
                 continue  # the estimator measures it on the next frame, which takes no flow measurement
             stale = (tr.status == Status.KEYFRAME or tr.since_refresh >= cfg.refresh_every
                      or len(tr.points) < cfg.refresh_below * max(tr.n_points_fresh, 1))
