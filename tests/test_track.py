@@ -1,6 +1,7 @@
 """The tracker on a real synthetic clip: flow + PnP against ground truth, the state machine, and the main
 command end to end (video through PyAV, MCAP read back with the mcap reader)."""
 
+import dataclasses
 import json
 import os
 
@@ -178,6 +179,50 @@ def test_an_instruments_parts_get_their_keyframes_together(clip, lnd_parts, tiny
         assert states["shaft"].info["estimator"] == "cadence"
         assert states["wrist"].info.get("estimator") == ("instrument keyframe" if kinematic else None)
         assert states["wrist"].status == ("keyframe" if kinematic else "predicted")
+
+
+def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_parts, tiny_ckpt):
+    """The estimator sees nothing of jaw_left (behind the other tool) while the other parts are measured:
+    after the retry any tracked part gets, the jaw keeps a predicted pose for up to ``max_occluded``
+    frames, then it is lost; when the whole instrument is unseen, no part is held."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    n = 5
+    i = max(range(1, len(frames) - n), key=lambda k: min(gt.pose(j, tid)[2] for tid in lnd_parts.values()
+                                                        for j in range(k - 1, k + n)))
+    hidden: set[str] = set()
+
+    class Hiding(_GroundTruthEstimator):
+        def estimate(self, image, boxes, K, priors=None):
+            out = super().estimate(image, boxes, K, priors)
+            return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part in hidden else r for r in out]
+
+    est = Hiding(model, gt, lnd_parts, 0.0)
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(kinematic=False, max_occluded=3))
+    for p in model.parts:
+        tracker.set_pose(lnd_parts[p.name], *gt.pose(i - 1, lnd_parts[p.name])[:2], (i - 1) / 10.0)
+    est.frame = i - 1
+    tracker.step(frames[i - 1], (i - 1) / 10.0, None)
+    hidden.add("jaw_left")
+    jaw = []
+    for j in range(i, i + n):
+        est.frame = j
+        states = {s.spec.part: s for s in tracker.step(frames[j], j / 10.0, None)}
+        jaw.append(states["jaw_left"])
+        assert states["wrist"].status == "keyframe"
+    # the first unseen frame is the retry every tracked part gets, then 3 held frames, then lost
+    assert [s.status for s in jaw] == ["predicted"] * 4 + ["lost"], [s.status for s in jaw]
+    assert [s.info.get("occluded") for s in jaw[:4]] == [None, 1, 2, 3] and jaw[4].info["why_lost"]
+    for k, s in enumerate(jaw[:4]):  # carried from the last measured pose (velocity 0 after set_pose)
+        moved = pose_distance(*gt.pose(i - 1, lnd_parts["jaw_left"])[:2], *gt.pose(i + k, lnd_parts["jaw_left"])[:2])[1]
+        assert pose_distance(s.R, s.t, *gt.pose(i + k, lnd_parts["jaw_left"])[:2])[1] < moved + 0.5
+    hidden.update(p.name for p in model.parts)  # nothing of the instrument is seen: no reason to hold a part
+    est.frame = i + n
+    states = tracker.step(frames[i + n - 1], (i + n) / 10.0, None)
+    assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.get("occluded") for s in states)
 
 
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):

@@ -27,7 +27,9 @@ class TrackConfig:
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
-    part whose projected box keeps less than this fraction inside the image is lost.
+    part whose projected box keeps less than this fraction inside the image is lost. ``max_occluded``:
+    frames a tracked part the estimator does not see keeps its predicted pose while another part of its
+    instrument is measured (hidden behind the other tool; the smoother bridges the gap when it is back).
 
     ``flow``: measure parts between keyframes by model-based optical flow (off: the filter carries them and
     the smoother interpolates between keyframes; LK follows highlights and edges on textureless metal:
@@ -59,6 +61,7 @@ class TrackConfig:
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3
+    max_occluded: int = 30
     min_visible: float = 0.15
     max_points: int = 80
     refresh_every: int = 10
@@ -102,6 +105,8 @@ class TrackConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
+        if self.max_occluded < 0:
+            raise ValueError(f"max_occluded must be >= 0, got {self.max_occluded}")
         for name in ("max_points", "refresh_every", "max_predicted"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

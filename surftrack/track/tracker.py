@@ -37,6 +37,9 @@ from surftrack.track.kalman import FilterStep, PoseKalman
 from surftrack.track.status import POSED, Status
 
 
+# estimator runs the tracker scheduled itself (not asked for by a failing measurement)
+SCHEDULED = ("cadence", "instrument keyframe", "box disagreement")
+
 
 @dataclass(frozen=True)
 class PartSpec:
@@ -124,6 +127,7 @@ class _Track:
         self.since_meas = 0
         self.seeded = False
         self.unseen = 0  # estimator runs in a row that saw nothing of a tracked part
+        self.occluded = 0  # frames held (predicted) while unseen and the rest of its instrument was measured
         self.info: dict = {}
         rng = np.random.default_rng(spec.obj_id)
         v = spec.vertices
@@ -135,7 +139,7 @@ class _Track:
 
     def drop(self) -> None:
         self.kf = PoseKalman(self.cfg.kalman)
-        self.unseen = 0
+        self.unseen = self.occluded = 0
         self.status, self.confidence = Status.LOST, 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
@@ -331,6 +335,7 @@ class Tracker:
                 results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                            self.estimator.model.parts, self._kinematic, self.instruments)
             est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
+            unseen: list[tuple[_Track, str]] = []
             for (tr, box, prior, why), res in zip(requests, results):
                 tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                                prior_won=bool(res.counts.get("prior_won", 0)),
@@ -338,7 +343,7 @@ class Tracker:
                 good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
                 conf = float(1.0 - np.exp(-max(res.score, 0.0)))
                 if good:
-                    tr.unseen = 0
+                    tr.unseen = tr.occluded = 0
                 if tr.has_pose and good:
                     if res.counts.get("prior_won") and not self._moved(res, prior):
                         # the tracked pose explains the image best: a confirmation, not a new measurement
@@ -363,21 +368,32 @@ class Tracker:
                     tr.status, tr.confidence = Status.KEYFRAME, conf
                     tr.since_keyframe, tr.since_meas = 0, 0
                 elif tr.has_pose and res.ok and res.score > 0.0 and (
-                        why in ("cadence", "box disagreement") or tr.since_meas < 3 * cfg.max_predicted):
+                        why in SCHEDULED or tr.since_meas < 3 * cfg.max_predicted):
                     # inconclusive (too few inliers, or a false box): keep the track on the filter
                     tr.since_keyframe = 0
                     tr.unseen = 0  # the network saw something: a later "sees nothing" gets its retry
-                elif tr.has_pose and why in ("cadence", "box disagreement") and tr.unseen == 0:
+                elif tr.has_pose and why in SCHEDULED and tr.unseen == 0:
                     # flow still supports the track but the network sees nothing (an occluder, a poor
                     # crop): ask again on the next frame before giving the part up
                     tr.unseen += 1
                     tr.since_keyframe = cfg.keyframe_every
                 else:
                     # the network sees nothing of the part where it should be (score <= 0: no pixel agrees
-                    # with any pose, not even the tracked one), or recovery failed: flow would only follow
-                    # the background now
+                    # with any pose, not even the tracked one), or recovery failed
+                    unseen.append((tr, "not seen by the estimator" if res.score <= 0.0 else "estimator failed"))
+            for tr, why_lost in unseen:
+                inst = (tr.spec.instrument, tr.spec.instance)
+                measured = any(o is not tr and (o.spec.instrument, o.spec.instance) == inst
+                               and o.status in (Status.KEYFRAME, Status.TRACKING) for o in self.tracks)
+                if tr.has_pose and measured and tr.occluded < cfg.max_occluded:
+                    # the rest of its instrument is seen: most likely hidden behind the other tool. The filter
+                    # carries it (its covariance growing) and the smoother bridges the gap when it is back
+                    tr.occluded += 1
+                    tr.status, tr.confidence = Status.PREDICTED, 0.5 * tr.confidence
+                    tr.info["occluded"] = tr.occluded
+                else:
                     tr.drop()
-                    tr.info["why_lost"] = "not seen by the estimator" if res.score <= 0.0 else "estimator failed"
+                    tr.info["why_lost"] = why_lost
         # 4. refresh flow points where needed (after all poses of the frame are settled)
         for tr in self.tracks:
             if tr.status not in (Status.KEYFRAME, Status.TRACKING):
