@@ -23,7 +23,9 @@ def write_log(path):
         for i in range(N):
             t = i / FPS
             w.pose("shaft", t, R, np.array([10.0, -5.0, 80.0]) + SHAFT_V * t)
-            w.status(t, "shaft", "keyframe" if i % 2 == 0 else "tracking", 0.9)  # both are measured poses
+            w.status(t, "shaft", "keyframe" if i % 2 == 0 else "tracking", 0.9,  # both are measured poses
+                     {"position_std_mm": [1.0, 2.0, 2.0]})
+            w.pose("tip", t, R, np.array([10.0 * t**3, 0.0, 70.0]))  # jerk 60 mm/s^3
             jaw = np.array([0.0, 0.0, 60.0]) + JAW_V * t + (100.0 if i >= 10 else 0.0)
             if i != 8:
                 w.pose("jaw", t, R, jaw)
@@ -44,6 +46,9 @@ def test_straight_line_speed_and_path(tmp_path):
     assert shaft["mean_speed_mm_s"] == pytest.approx(20.0, rel=1e-9)
     assert shaft["max_speed_mm_s"] == pytest.approx(20.0, rel=1e-9)
     assert shaft["series"]["x_mm"][-1] == pytest.approx(10.0 + 12.0 * 2.0)  # metres in the file, mm here
+    assert shaft["rms_jerk_mm_s3"] == pytest.approx(0.0, abs=1e-6) and shaft["position_std_mm"] == pytest.approx(3.0)
+    assert s["parts"]["tip"]["rms_jerk_mm_s3"] == pytest.approx(60.0, rel=1e-6)
+    assert s["parts"]["tip"]["position_std_mm"] is None
 
     # jaw: steps touching frames 8 and 9 are not counted (no pose / "lost"), nor is the 100 mm jump
     jaw = s["parts"]["jaw"]

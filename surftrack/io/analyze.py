@@ -13,7 +13,12 @@
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
 and status times, so a logged "lost" frame, or a pose with a non-tracking status, breaks the chain and
 no distance is counted across it): path length = sum of the step lengths, mean speed = path length /
-the summed duration of those steps, max speed = the largest step length / step duration.
+the summed duration of those steps, max speed = the largest step length / step duration, RMS jerk = the
+root mean square of the central third difference over 5 consecutive tracked frames (mm/s^3; a smoothness
+figure of skill assessment). ``position_std_mm``: the mean over tracked frames of the pose's 3D position
+standard deviation, from the filter's covariance the tracker writes in the status (None in files
+without it). Path length has no uncertainty here: the per-frame errors of a smoothed track are
+correlated, and the file holds no cross-frame covariance.
 
 :func:`format_analysis` renders the summary as a text table, :func:`plot_analysis` as a PNG.
 """
@@ -65,7 +70,7 @@ def _read(path: Path) -> list[tuple[str, str, int, dict]]:
 
 
 def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[int, bool]) -> dict:
-    """Path length and speeds over consecutive tracked frames (see the module docstring)."""
+    """Path length, speeds and jerk over consecutive tracked frames (see the module docstring)."""
     steps_t, steps_v, length, duration = [], [], 0.0, 0.0
     for a, b in zip(times_ns[:-1], times_ns[1:]):
         if not (tracked[a] and tracked[b]) or b <= a:
@@ -76,10 +81,20 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
         duration += dt
         steps_t.append(0.5 * (a + b) * 1e-9)
         steps_v.append(d / dt)
+    # jerk: central third difference over 5 consecutive tracked frames (exact for a cubic path)
+    jerks = []
+    for k in range(2, len(times_ns) - 2):
+        win = times_ns[k - 2:k + 3]
+        if not all(tracked[n] for n in win):
+            continue
+        dt = (win[-1] - win[0]) * 1e-9 / 4.0
+        x = [xyz_mm[n] for n in win]
+        jerks.append(float(np.linalg.norm(x[4] - 2.0 * x[3] + 2.0 * x[1] - x[0]) / (2.0 * dt**3)))
     return {
         "path_length_mm": length,
         "mean_speed_mm_s": length / duration if duration > 0 else None,
         "max_speed_mm_s": max(steps_v) if steps_v else None,
+        "rms_jerk_mm_s3": float(np.sqrt(np.mean(np.square(jerks)))) if jerks else None,
         "speed_time_s": steps_t,
         "speed_mm_s": steps_v,
     }
@@ -90,7 +105,8 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
 
         {"file": str,
          "parts": {name: {"pose_frames", "tracked_frames", "t_start_s", "t_end_s", "span_s",
-                          "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
+                          "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s", "rms_jerk_mm_s3",
+                          "position_std_mm",
                           "series": {"time_s", "x_mm", "y_mm", "z_mm", "tracked",
                                      "speed_time_s", "speed_mm_s"}}},
          "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
@@ -105,6 +121,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     tracked_ok = set(tracked_statuses)
     poses: dict[str, dict[int, np.ndarray]] = {}
     status: dict[str, dict[int, str]] = {}
+    pos_std: dict[str, dict[int, float]] = {}
     joints: dict[str, list[tuple[int, dict[str, float]]]] = {}
     messages = _read(path)
     try:
@@ -114,6 +131,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                 poses.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
             elif (m := _STATUS.match(topic)) and schema == "surftrack.PartStatus":
                 status.setdefault(m.group(1), {})[ns] = str(msg["status"])
+                sd = (msg.get("extra") or {}).get("position_std_mm")
+                if sd is not None:
+                    pos_std.setdefault(m.group(1), {})[ns] = float(np.linalg.norm(sd))
             elif (m := _JOINTS.match(topic)) and schema == "foxglove.JointStates":
                 vals = {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j}
                 joints.setdefault(m.group(1), []).append((ns, vals))
@@ -138,6 +158,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             "path_length_mm": motion["path_length_mm"],
             "mean_speed_mm_s": motion["mean_speed_mm_s"],
             "max_speed_mm_s": motion["max_speed_mm_s"],
+            "rms_jerk_mm_s3": motion["rms_jerk_mm_s3"],
+            "position_std_mm": (float(np.mean(sds)) if (sds := [v for ns, v in pos_std.get(name, {}).items()
+                                                                 if tracked.get(ns)]) else None),
             "series": {
                 "time_s": [ns * 1e-9 for ns in pose_ns],
                 "x_mm": arr[:, 0].tolist(), "y_mm": arr[:, 1].tolist(), "z_mm": arr[:, 2].tolist(),
@@ -178,12 +201,13 @@ def format_analysis(summary: dict) -> str:
     else:
         w = max(4, *(len(n) for n in parts))
         lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'path_mm':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}")
+                     f"{'path_mm':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}  {'jerk_mm/s3':>10}  {'pos_std_mm':>10}")
         for n, p in parts.items():
             lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  "
                          f"{_num(p['t_start_s'], '8.3f'):>8}  {_num(p['t_end_s'], '8.3f'):>8}  "
                          f"{p['path_length_mm']:>9.1f}  {_num(p['mean_speed_mm_s'], '9.1f'):>9}  "
-                         f"{_num(p['max_speed_mm_s'], '9.1f'):>9}")
+                         f"{_num(p['max_speed_mm_s'], '9.1f'):>9}  {_num(p['rms_jerk_mm_s3'], '10.0f'):>10}  "
+                         f"{_num(p['position_std_mm'], '10.2f'):>10}")
     insts = summary["instruments"]
     if insts:
         w = max(10, *(len(n) for n in insts))
