@@ -2,13 +2,16 @@
 
 ``annotate_video(video, boxes, ...)`` validates all inputs before heavy work (video decodable, camera
 and detections consistent with it, model knows the parts, outputs writable), then streams the video
-frame by frame through :class:`surftrack.track.Tracker` (memory flat in the video's length) and writes:
+frame by frame through :class:`surftrack.track.Tracker` (memory flat in the video's length), smooths the
+poses with a fixed lag (:class:`surftrack.track.smoother.LagSmoother`; none with ``--causal``) and hands
+every frame to the output sinks (:mod:`surftrack.io.sinks`):
 
 * an MCAP file for Foxglove (:class:`surftrack.io.TrackWriter`): per part pose and status on every frame,
-  ``/tf``, camera calibration, part meshes, optional JPEG frames with annotations, file metadata;
-* optionally an overlay video and TUM trajectories (one file per part).
+  ``/tf``, camera calibration, part meshes, joint angles, optional JPEG frames with annotations, metadata;
+* optionally an overlay video, TUM trajectories (one file per part) and a joint-angle CSV.
 
-Every output is finalised when the run stops early (bad frame, Ctrl-C): what was written stays valid.
+Every output is finalised when the run stops early (bad frame, Ctrl-C, SIGTERM): the frames waiting in
+the smoother are written, and what was written stays valid.
 """
 
 from __future__ import annotations
@@ -24,11 +27,11 @@ import cv2
 import numpy as np
 
 from surftrack import __version__
-from surftrack.instruments import BUILTIN, JOINT_NAMES, InstrumentRegistry
+from surftrack.instruments import BUILTIN, InstrumentRegistry
+from surftrack.io.sinks import FrameSink, JointsSink, McapSink, OverlaySink, TumSink
 from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.smoother import LagSmoother
-from surftrack.track.status import Status
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
@@ -119,49 +122,6 @@ def _frame_boxes(doc: dict, cam) -> dict[int, dict[int, list]]:
             per.setdefault(int(d["part_id"]), []).append((_undistort_box(box, cam) if distorted else box,
                                                           float(d["score"])))
     return out
-
-
-def _rgba(status: Status) -> tuple[float, float, float, float]:
-    """The overlay's colour of a status as RGBA in [0, 1] (MCAP annotations)."""
-    from surftrack.io.overlay import STATUS_COLORS
-
-    return (*(c / 255.0 for c in STATUS_COLORS[status]), 1.0)
-
-
-def _uncertainty(s: PartState) -> dict:
-    """Per-axis standard deviations of a part's pose (mm; body rotation, deg) and its velocity (camera
-    frame, mm/s; body angular velocity, deg/s) from its filter state, for the status message."""
-    if s.filter_step is None:
-        return {}
-    sd = np.sqrt(np.clip(np.diag(s.filter_step.P), 0.0, None))
-    x = s.filter_step.x
-    return {"position_std_mm": sd[0:3].round(3).tolist(), "rotation_std_deg": np.degrees(sd[6:9]).round(3).tolist(),
-            "velocity_mm_s": x[3:6].round(3).tolist(), "angular_velocity_deg_s": np.degrees(x[9:12]).round(3).tolist()}
-
-
-def _annotations(K: np.ndarray, states: list[PartState]) -> dict:
-    """Projected axes (x red, y green, z blue), boxes and labels for ImageAnnotations."""
-    from surftrack.io.overlay import project_axes
-
-    points, texts = [], []
-    axis_rgb = ((1, 0, 0, 1), (0, 1, 0, 1), (0, 0.4, 1, 1))
-    for s in states:
-        if s.box is not None:
-            x, y, w, h = s.box
-            points.append({"points": [(x, y), (x + w, y), (x + w, y + h), (x, y + h)], "type": "line_loop",
-                           "color": _rgba(s.status), "thickness": 1.0})
-        if s.R is None:
-            continue
-        # OpenCV puts pixel centres on integers, Foxglove on half-integers (its origin is the top-left
-        # pixel's corner); boxes are in edge coordinates already
-        ax = project_axes(K, s.R, s.t, 8.0) + 0.5
-        if np.all(np.isfinite(ax)):
-            for k in range(3):
-                points.append({"points": [ax[0], ax[k + 1]], "type": "line_list", "color": axis_rgb[k],
-                               "thickness": 2.0})
-            texts.append({"position": ax[0], "text": f"{s.spec.part} {s.status} {s.confidence:.2f}",
-                          "font_size": 11.0})
-    return {"points": points, "texts": texts}
 
 
 class DecodeError(InputError):
@@ -282,7 +242,6 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     conf_sum = {s.name: 0.0 for s in specs}
     timing = Counter()
     n_done, t_first, last_t = 0, None, None
-    overlay = tum = joints_csv = None
     fitters = {}
     joints = opts.joints or opts.joints_csv is not None
     if joints or opts.config.kinematic:
@@ -311,67 +270,36 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         outputs["joints_csv"] = str(opts.joints_csv)
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
         writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
+        sinks: list[FrameSink] = [McapSink(writer, specs, cam.K, images=opts.mcap_images)]
         if opts.overlay is not None:
-            from surftrack.io.overlay import OverlayWriter, PartOverlay
+            from surftrack.io.overlay import OverlayWriter
 
-            overlay = outputs_open.enter_context(OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K))
+            sinks.append(OverlaySink(outputs_open.enter_context(
+                OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K))))
         if opts.export_tum is not None:
             from surftrack.io.tum import TumWriter
 
-            tum = outputs_open.enter_context(TumWriter(opts.export_tum))
+            sinks.append(TumSink(outputs_open.enter_context(TumWriter(opts.export_tum))))
+        joints_csv = None
         if opts.joints_csv is not None:
             from surftrack.io.joints_csv import JointCsvWriter
 
             joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
+        if fitters:
+            sinks.append(JointsSink(writer, fitters, joints_csv, timing))
         bar = tqdm(total=_frames_to_read(info, opts.end), unit="frame", desc=video.name,
                    disable=not opts.progress)
-        shown: set[str] = set()  # parts whose mesh is in the 3D scene
         keep_frames = opts.overlay is not None or opts.mcap_images
-
-        def emit(index: int, t_s: float, frame: np.ndarray | None, states: list[PartState]) -> None:
-            """Write one frame's (smoothed) states to every output."""
-            nonlocal shown
-            posed = {s.spec.name: (s.R, s.t) for s in states if s.R is not None}
-            for s in states:
-                writer.status(t_s, s.spec.name, s.status, s.confidence, {**s.info, **_uncertainty(s)})
-                counts[s.spec.name][s.status] += 1
-                conf_sum[s.spec.name] += s.confidence
-            if posed:
-                writer.poses(t_s, posed)
-            # 3D meshes: shown while a part has a pose, deleted while it has none
-            now = set(posed)
-            if now - shown:
-                writer.scene_meshes(t_s, {s.name: (s.vertices, s.faces, (0.75, 0.75, 0.8, 1.0))
-                                          for s in specs if s.name in now - shown})
-            if shown - now:
-                writer.scene_deletions(t_s, sorted(shown - now))
-            shown = now
-            if opts.mcap_images:
-                _, jpg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
-                writer.image_jpeg(t_s, jpg.tobytes())
-                writer.annotations(t_s, **_annotations(cam.K, states))
-            if overlay is not None:
-                overlay.write(frame, t_s, [PartOverlay(s.spec.name, s.status, s.confidence, s.R, s.t, s.box,
-                                                       (s.spec.vertices, s.spec.faces), 8.0) for s in states])
-            if tum is not None:
-                for name, (R, t) in posed.items():
-                    tum.add(name, t_s, R, t)
-            for (inst, instance), fitter in fitters.items():
-                t0 = time.perf_counter()
-                fit = fitter.update([s for s in states if (s.spec.instrument, s.spec.instance) == (inst, instance)])
-                timing["joints_s"] += time.perf_counter() - t0
-                if fit is None:
-                    continue
-                label = f"{inst}.{instance}"
-                writer.joint_states(t_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
-                if joints_csv is not None:
-                    joints_csv.add(t_s, label, fit)
 
         def release(ready: list, notify: bool = True) -> None:
             nonlocal n_done
             for k, ((index, t_s, frame, states), steps) in enumerate(ready):
                 states = [s.with_step(steps.get(s.spec.name)) for s in states]
-                emit(index, t_s, frame, states)
+                for s in states:
+                    counts[s.spec.name][s.status] += 1
+                    conf_sum[s.spec.name] += s.confidence
+                for sink in sinks:
+                    sink.write(index, t_s, frame, states)
                 n_done += 1  # its outputs are written: counted even when on_frame stops the run
                 if notify and on_frame is not None:
                     try:

@@ -227,10 +227,29 @@ class Tracker:
              boxes: Mapping[int, Sequence[tuple[Box, float]]] | None = None) -> list[PartState]:
         """Advance to the frame ``frame_rgb`` (H, W, 3 uint8, undistorted) at ``time_s`` seconds;
         ``boxes`` maps track id -> [(box, score), ...] detected in this frame (missing = none)."""
-        cfg, K = self.cfg, self.K
-        boxes = boxes or {}
         gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
-        # 1. propagate tracked parts: predict, flow, PnP, gated update. LK runs once for the points of
+        self._propagate(gray, time_s)
+        requests, out_boxes = self._schedule(boxes or {})
+        if requests:
+            self._estimate(frame_rgb, time_s, requests)
+        self._refresh_points(gray)
+        self.prev_gray = gray
+        states = []
+        for tr in self.tracks:
+            if tr.has_pose:
+                R, t = tr.kf.pose
+                states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
+                                        out_boxes.get(tr.spec.track_id), dict(tr.info), tr.kf.snapshot()))
+            else:
+                states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
+                                        dict(tr.info)))
+        return states
+
+    # ------------------------------------------------------------------ the phases of a step
+    def _propagate(self, gray: np.ndarray, time_s: float) -> None:
+        """Predict every tracked part to ``time_s``; between keyframes, measure it by flow (LK + PnP)."""
+        cfg, K = self.cfg, self.K
+        # predict, flow, PnP, gated update. LK runs once for the points of
         # all parts (one image pyramid per frame), its time shared out by point count.
         # a part the estimator measures this frame anyway (its cadence is due) gets no flow measurement:
         # flow's error repeats the pose its points were lifted at, and fused next to the estimator it
@@ -287,7 +306,12 @@ class Tracker:
                 tr.status, tr.since_meas = Status.PREDICTED, tr.since_meas + 1
                 tr.confidence *= 0.7
             tr.info["flow_ms"] = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
-        # 2. decide who needs the estimator
+
+    def _schedule(self, boxes: Mapping[int, Sequence[tuple[Box, float]]]
+                  ) -> tuple[list[tuple[_Track, Box, tuple | None, str]], dict[int, Box | None]]:
+        """Drop parts that left the image, pick each part's box, and list who needs the estimator and
+        why: (track, box, prior pose or None, reason). Also the box reported per track id."""
+        cfg, K = self.cfg, self.K
         requests: list[tuple[_Track, Box, tuple | None, str]] = []
         out_boxes: dict[int, Box | None] = {}
         for tr in self.tracks:
@@ -326,75 +350,83 @@ class Tracker:
                 if (tr.has_pose and id(tr) not in asked and box is not None
                         and (tr.spec.instrument, tr.spec.instance) in due):
                     requests.append((tr, box, tr.kf.pose, "instrument keyframe"))
-        # 3. one batched estimator call
-        if requests:
-            t_est = time.perf_counter()
-            results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
-                                              priors=[p for _, _, p, _ in requests])
-            if self._kinematic is not None:
-                results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
-                                           self.estimator.model.parts, self._kinematic, self.instruments)
-            est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-            unseen: list[tuple[_Track, str]] = []
-            for (tr, box, prior, why), res in zip(requests, results):
-                tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
-                               prior_won=bool(res.counts.get("prior_won", 0)),
-                               kinematic=bool(res.counts.get("kinematic", 0)))
-                good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
-                conf = float(1.0 - np.exp(-max(res.score, 0.0)))
-                if good:
-                    tr.unseen = tr.occluded = 0
-                if tr.has_pose and good:
-                    if res.counts.get("prior_won") and not self._moved(res, prior):
-                        # the tracked pose explains the image best: a confirmation, not a new measurement
-                        # (fusing the filter's own pose again would shrink its covariance for nothing)
-                        tr.status, tr.confidence = Status.KEYFRAME, max(conf, tr.confidence)
-                        tr.since_meas = 0
-                    elif tr.kf.update(res.R, res.t, self._est_cov):
-                        tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
-                        tr.info["d2"] = tr.kf.last_d2
-                    elif tr.kf.lost:
-                        # the estimator has disagreed with the track on max_rejections frames in a row:
-                        # the track is what is wrong
-                        tr.kf.restart(res.R, res.t, self._est_cov, self._widen)
-                        tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
-                    else:
-                        # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
-                        # roll) as a fast move: the filter carries the pose and the next frames decide
-                        tr.info["rejected_d2"] = tr.kf.last_d2
-                    tr.since_keyframe = 0
-                elif good:
-                    tr.kf.init(res.R, res.t, time_s, self._est_cov)
-                    tr.status, tr.confidence = Status.KEYFRAME, conf
-                    tr.since_keyframe, tr.since_meas = 0, 0
-                elif tr.has_pose and res.ok and res.score > 0.0 and (
-                        why in SCHEDULED or tr.since_meas < 3 * cfg.max_predicted):
-                    # inconclusive (too few inliers, or a false box): keep the track on the filter
-                    tr.since_keyframe = 0
-                    tr.unseen = 0  # the network saw something: a later "sees nothing" gets its retry
-                elif tr.has_pose and why in SCHEDULED and tr.unseen == 0:
-                    # flow still supports the track but the network sees nothing (an occluder, a poor
-                    # crop): ask again on the next frame before giving the part up
-                    tr.unseen += 1
-                    tr.since_keyframe = cfg.keyframe_every
+        return requests, out_boxes
+
+    def _estimate(self, frame_rgb: np.ndarray, time_s: float,
+                  requests: list[tuple[_Track, Box, tuple | None, str]]) -> None:
+        """One batched estimator call for ``requests``, made instrument-consistent, and its results
+        fused, restarted, held or dropped."""
+        cfg, K = self.cfg, self.K
+        t_est = time.perf_counter()
+        results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
+                                          priors=[p for _, _, p, _ in requests])
+        if self._kinematic is not None:
+            results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
+                                       self.estimator.model.parts, self._kinematic, self.instruments)
+        est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
+        unseen: list[tuple[_Track, str]] = []
+        for (tr, box, prior, why), res in zip(requests, results):
+            tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
+                           prior_won=bool(res.counts.get("prior_won", 0)),
+                           kinematic=bool(res.counts.get("kinematic", 0)))
+            good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+            conf = float(1.0 - np.exp(-max(res.score, 0.0)))
+            if good:
+                tr.unseen = tr.occluded = 0
+            if tr.has_pose and good:
+                if res.counts.get("prior_won") and not self._moved(res, prior):
+                    # the tracked pose explains the image best: a confirmation, not a new measurement
+                    # (fusing the filter's own pose again would shrink its covariance for nothing)
+                    tr.status, tr.confidence = Status.KEYFRAME, max(conf, tr.confidence)
+                    tr.since_meas = 0
+                elif tr.kf.update(res.R, res.t, self._est_cov):
+                    tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
+                    tr.info["d2"] = tr.kf.last_d2
+                elif tr.kf.lost:
+                    # the estimator has disagreed with the track on max_rejections frames in a row:
+                    # the track is what is wrong
+                    tr.kf.restart(res.R, res.t, self._est_cov, self._widen)
+                    tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
                 else:
-                    # the network sees nothing of the part where it should be (score <= 0: no pixel agrees
-                    # with any pose, not even the tracked one), or recovery failed
-                    unseen.append((tr, "not seen by the estimator" if res.score <= 0.0 else "estimator failed"))
-            for tr, why_lost in unseen:
-                inst = (tr.spec.instrument, tr.spec.instance)
-                measured = any(o is not tr and (o.spec.instrument, o.spec.instance) == inst
-                               and o.status in (Status.KEYFRAME, Status.TRACKING) for o in self.tracks)
-                if tr.has_pose and measured and tr.occluded < cfg.max_occluded:
-                    # the rest of its instrument is seen: most likely hidden behind the other tool. The filter
-                    # carries it (its covariance growing) and the smoother bridges the gap when it is back
-                    tr.occluded += 1
-                    tr.status, tr.confidence = Status.PREDICTED, 0.5 * tr.confidence
-                    tr.info["occluded"] = tr.occluded
-                else:
-                    tr.drop()
-                    tr.info["why_lost"] = why_lost
-        # 4. refresh flow points where needed (after all poses of the frame are settled)
+                    # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
+                    # roll) as a fast move: the filter carries the pose and the next frames decide
+                    tr.info["rejected_d2"] = tr.kf.last_d2
+                tr.since_keyframe = 0
+            elif good:
+                tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                tr.status, tr.confidence = Status.KEYFRAME, conf
+                tr.since_keyframe, tr.since_meas = 0, 0
+            elif tr.has_pose and res.ok and res.score > 0.0 and (
+                    why in SCHEDULED or tr.since_meas < 3 * cfg.max_predicted):
+                # inconclusive (too few inliers, or a false box): keep the track on the filter
+                tr.since_keyframe = 0
+                tr.unseen = 0  # the network saw something: a later "sees nothing" gets its retry
+            elif tr.has_pose and why in SCHEDULED and tr.unseen == 0:
+                # flow still supports the track but the network sees nothing (an occluder, a poor
+                # crop): ask again on the next frame before giving the part up
+                tr.unseen += 1
+                tr.since_keyframe = cfg.keyframe_every
+            else:
+                # the network sees nothing of the part where it should be (score <= 0: no pixel agrees
+                # with any pose, not even the tracked one), or recovery failed
+                unseen.append((tr, "not seen by the estimator" if res.score <= 0.0 else "estimator failed"))
+        for tr, why_lost in unseen:
+            inst = (tr.spec.instrument, tr.spec.instance)
+            measured = any(o is not tr and (o.spec.instrument, o.spec.instance) == inst
+                           and o.status in (Status.KEYFRAME, Status.TRACKING) for o in self.tracks)
+            if tr.has_pose and measured and tr.occluded < cfg.max_occluded:
+                # the rest of its instrument is seen: most likely hidden behind the other tool. The filter
+                # carries it (its covariance growing) and the smoother bridges the gap when it is back
+                tr.occluded += 1
+                tr.status, tr.confidence = Status.PREDICTED, 0.5 * tr.confidence
+                tr.info["occluded"] = tr.occluded
+            else:
+                tr.drop()
+                tr.info["why_lost"] = why_lost
+
+    def _refresh_points(self, gray: np.ndarray) -> None:
+        """Pick fresh flow points where needed (after all poses of the frame are settled)."""
+        cfg = self.cfg
         for tr in self.tracks:
             if tr.status not in (Status.KEYFRAME, Status.TRACKING):
                 continue  # never pick points at an unconfirmed (predicted) pose: they may lie on the background
@@ -406,14 +438,3 @@ class Tracker:
                 t_ref = time.perf_counter()
                 self._refresh(tr, gray)
                 tr.info["refresh_ms"] = 1e3 * (time.perf_counter() - t_ref)
-        self.prev_gray = gray
-        states = []
-        for tr in self.tracks:
-            if tr.has_pose:
-                R, t = tr.kf.pose
-                states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
-                                        out_boxes.get(tr.spec.track_id), dict(tr.info), tr.kf.snapshot()))
-            else:
-                states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
-                                        dict(tr.info)))
-        return states
