@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
 
         def score_smoothed(ready):
             for (index, time_s, states), steps in ready:
-                smoothed.add_frame(index, time_s, [s.with_step(steps.get(s.spec.name)) for s in states])
+                smoothed.add_frame(index, time_s, [s.settled(steps.get(s.spec.name), cfg) for s in states])
 
         def on_frame(index, time_s, states):
             nonlocal smooth_s

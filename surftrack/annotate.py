@@ -294,7 +294,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         def release(ready: list, notify: bool = True) -> None:
             nonlocal n_done
             for k, ((index, t_s, frame, states), steps) in enumerate(ready):
-                states = [s.with_step(steps.get(s.spec.name)) for s in states]
+                states = [s.settled(steps.get(s.spec.name), opts.config) for s in states]
                 for s in states:
                     counts[s.spec.name][s.status] += 1
                     conf_sum[s.spec.name] += s.confidence

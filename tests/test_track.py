@@ -585,3 +585,27 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
         statuses.append(tracker.step(frames[start + k], (start + k) / 10.0, None)[0].status)
     assert "lost" not in statuses[:4] and statuses[4] == "lost", statuses
     assert next(script, None) is None
+
+
+def test_confidence_falls_with_the_pose_covariance_and_a_rejected_estimate(lnd_parts):
+    from surftrack.instruments import load_instrument
+    from surftrack.track import PartState, PoseKalman
+
+    lnd = load_instrument("lnd")
+    mesh = lnd.parts["wrist"].mesh
+    spec = PartSpec(lnd_parts["wrist"], 2, "large_needle_driver", 0, "wrist", mesh.vertices, mesh.faces)
+    cfg = TrackConfig()
+    kf = PoseKalman(cfg.kalman)
+    kf.init(np.eye(3), np.array([0.0, 0.0, 80.0]), 0.0, np.diag([1.0] * 3 + [1e-3] * 3))
+    confs = []
+    for k in range(1, 8):  # no measurements: the covariance grows, the confidence falls
+        kf.predict(k / 30.0)
+        state = PartState(spec, "predicted", 1.0, *kf.pose, None, {}).settled(kf.snapshot(), cfg)
+        confs.append(state.confidence)
+    assert all(b < a for a, b in zip(confs, confs[1:])) and 0.0 < confs[-1] < confs[0] < 1.0
+    sd = np.sqrt(np.trace(kf.snapshot().P[0:3, 0:3]))
+    assert confs[-1] == pytest.approx(np.exp(-0.5 * (sd / cfg.confidence_std_mm) ** 2))
+    rejected = PartState(spec, "predicted", 1.0, *kf.pose, None, {"rejected_d2": 40.0}).settled(kf.snapshot(), cfg)
+    assert rejected.confidence == pytest.approx(cfg.confidence_rejected * confs[-1])
+    lost = PartState(spec, "lost", 0.0, None, None, None)
+    assert lost.settled(None, cfg) is lost

@@ -48,6 +48,11 @@ class TrackConfig:
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
 
+    ``confidence_std_mm``, ``confidence_rejected``: a written pose's confidence from its covariance
+    (:meth:`~surftrack.track.tracker.PartState.settled`): 1 at no uncertainty, 0.61 at a 3D position
+    std of ``confidence_std_mm`` (a smoothed keyframe is ~1.5 mm), times ``confidence_rejected`` on a frame
+    whose estimate disagreed with the track.
+
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
@@ -77,6 +82,8 @@ class TrackConfig:
     init_min_inliers: int = 6
     init_min_score: float = 0.0
     smooth_lag_s: float = 1.0
+    confidence_std_mm: float = 2.0
+    confidence_rejected: float = 0.3
     kinematic: bool = True
     kinematic_anchor: str = "wrist"
     kinematic_anchor_weight: float = 10.0
@@ -101,7 +108,8 @@ class TrackConfig:
             raise ValueError(f"views must be 0 (the preset's) or 1-9, got {self.views}")
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
-        for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio"):
+        for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio",
+                     "confidence_rejected"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
@@ -115,7 +123,7 @@ class TrackConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
-        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg"):
+        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_std_mm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg"):
