@@ -376,39 +376,3 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}
                       for name, c in counts.items()},
             "outputs": outputs}
-
-
-def video_jobs(video: str | Path, boxes: str | Path, camera: str | Path | None,
-               out: str | Path | None) -> list[tuple[Path, Path, Path | None, Path | None]]:
-    """(video, boxes, camera, mcap) per job. A folder of videos takes ``boxes`` as a folder holding
-    ``<stem>.json`` (or ``<stem>.det.json``) per video, ``camera`` as one file for all or a folder with
-    ``<stem>.json``, and writes ``<out folder>/<stem>.mcap`` (default: beside the videos)."""
-    video = Path(video)
-    if not video.is_dir():
-        return [(video, Path(boxes), Path(camera) if camera else None, Path(out) if out else None)]
-    vids = sorted(p for p in video.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
-    if not vids:
-        raise InputError(f"{video}: folder holds no video ({', '.join(VIDEO_SUFFIXES)})")
-    stems: dict[str, str] = {}
-    for v in vids:
-        if v.stem in stems:
-            raise InputError(f"{video}: {stems[v.stem]} and {v.name} would share {v.stem}.json and {v.stem}.mcap; "
-                             f"rename one")
-        stems[v.stem] = v.name
-    bdir = Path(boxes)
-    if not bdir.is_dir():
-        raise InputError(f"{bdir}: with a folder of videos, --boxes must be a folder of <video stem>.json files")
-    jobs = []
-    for v in vids:
-        b = next((c for c in (bdir / f"{v.stem}.json", bdir / f"{v.stem}.det.json") if c.is_file()), None)
-        if b is None:
-            raise InputError(f"{bdir}: no {v.stem}.json or {v.stem}.det.json for video {v.name}")
-        c = None
-        if camera is not None:
-            cp = Path(camera)
-            c = cp / f"{v.stem}.json" if cp.is_dir() else cp
-        o = (Path(out) / f"{v.stem}.mcap") if out is not None else v.with_suffix(".mcap")
-        jobs.append((v, b, c, o))
-    if out is not None:
-        Path(out).mkdir(parents=True, exist_ok=True)
-    return jobs

@@ -273,34 +273,37 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from surftrack.annotate import AnnotateOptions, annotate_video, video_jobs
+    from surftrack.annotate import AnnotateOptions, annotate_video
 
     cfg = _track_config(args)
     registry = _registry(args)
-    jobs = video_jobs(args.video, args.boxes, args.camera, args.out)
-    if len(jobs) > 1 and (args.overlay or args.export_tum or args.joints_csv):
-        raise CLIError("--overlay, --export-tum and --joints-csv take one video; with a folder, run the videos "
-                       "one by one")
-    code = 0
-    for video, boxes, camera, out in jobs:
-        opts = AnnotateOptions(model=_model(args), camera=camera, out=out, config=cfg, device=args.device,
-                               start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
-                               mcap_images=args.images, progress=not args.quiet, joints=not args.no_joints,
-                               joints_csv=args.joints_csv, instruments=registry)
-        s = annotate_video(video, boxes, opts)
-        for note in s["notes"]:
-            print(f"note: {note}")
-        print(f"surftrack: {s['video']}: {s['frames']} frames in {s['seconds']:.1f} s ({s['fps']:.1f} frames/s)")
-        for name, p in s["parts"].items():
-            fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
-            print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
-        print("wrote " + ", ".join(s["outputs"].values()))
-        if s["partial"]:
-            p = s["partial"]
-            print(f"surftrack: partial: {video}: {p['frames_decoded']} of {p['frames_in_video'] or '?'} frames, "
-                  f"decoding stopped at t = {p['stopped_at_s']:.3f} s ({p['error']})", file=sys.stderr)
-            code = EXIT_PARTIAL
-    return code
+    if Path(args.video).is_dir():
+        # a folder is a batch: the same machinery as `surftrack batch` (a local Ray, a bad video skipped)
+        if args.overlay or args.export_tum or args.joints_csv:
+            raise CLIError("--overlay, --export-tum and --joints-csv take one video; with a folder, run the "
+                           "videos one by one")
+        return _run_batch(args, AnnotateOptions(model=_model(args), config=cfg, device=args.device, start=args.start,
+                                                end=args.end, mcap_images=args.images, progress=False,
+                                                joints=not args.no_joints, instruments=registry),
+                          args.video, args.out or args.video, address=None, workers=None, force=True)
+    opts = AnnotateOptions(model=_model(args), camera=args.camera, out=args.out, config=cfg, device=args.device,
+                           start=args.start, end=args.end, overlay=args.overlay, export_tum=args.export_tum,
+                           mcap_images=args.images, progress=not args.quiet, joints=not args.no_joints,
+                           joints_csv=args.joints_csv, instruments=registry)
+    s = annotate_video(args.video, args.boxes, opts)
+    for note in s["notes"]:
+        print(f"note: {note}")
+    print(f"surftrack: {s['video']}: {s['frames']} frames in {s['seconds']:.1f} s ({s['fps']:.1f} frames/s)")
+    for name, p in s["parts"].items():
+        fr = ", ".join(f"{k} {v}" for k, v in sorted(p["frames"].items()))
+        print(f"  {name:34s} {fr}; mean confidence {p['mean_confidence']:.2f}")
+    print("wrote " + ", ".join(s["outputs"].values()))
+    if s["partial"]:
+        p = s["partial"]
+        print(f"surftrack: partial: {args.video}: {p['frames_decoded']} of {p['frames_in_video'] or '?'} frames, "
+              f"decoding stopped at t = {p['stopped_at_s']:.3f} s ({p['error']})", file=sys.stderr)
+        return EXIT_PARTIAL
+    return 0
 
 
 #: Exit code of a batch in which some video failed, stopped decoding part of the way, or did not run.
@@ -309,21 +312,28 @@ EXIT_BATCH_INCOMPLETE = 3
 
 def _cmd_batch(args: argparse.Namespace) -> int:
     from surftrack.annotate import AnnotateOptions
-    from surftrack.batch import FINISHED, batch_jobs, run_batch
 
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
     opts = AnnotateOptions(model=_model(args), config=_track_config(args), device=args.device,
                            progress=False, instruments=_registry(args))
-    jobs = batch_jobs(args.videos, args.boxes, args.camera, args.out)
-    rows = run_batch(jobs, args.out, opts, address=args.address, workers=args.workers, force=args.force,
-                     progress=not args.quiet)
+    return _run_batch(args, opts, args.videos, args.out, address=args.address, workers=args.workers,
+                      force=args.force)
+
+
+def _run_batch(args: argparse.Namespace, opts, videos, out, *, address, workers, force: bool) -> int:
+    """``surftrack batch`` and the main command on a folder: run the jobs, print a line per video and the
+    total; exit 0 when every video finished, :data:`EXIT_BATCH_INCOMPLETE` otherwise."""
+    from surftrack.batch import FINISHED, batch_jobs, run_batch
+
+    jobs = batch_jobs(videos, args.boxes, args.camera, out)
+    rows = run_batch(jobs, out, opts, address=address, workers=workers, force=force, progress=not args.quiet)
     for r in rows:
         line = f"  {r['status']:8s} {r['video']}: {r['frames']} frames in {r['seconds']:.1f} s"
         print(line + (f" ({r['error']})" if r["error"] else ""))
     bad = [r for r in rows if r["status"] not in FINISHED]
     print(f"surftrack batch: {len(rows) - len(bad)} of {len(rows)} videos finished; wrote "
-          f"{Path(args.out) / 'manifest.jsonl'}")
+          f"{Path(out) / 'manifest.jsonl'}")
     return EXIT_BATCH_INCOMPLETE if bad else 0
 
 
@@ -443,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tk = sub.add_parser("track", help="track the instrument parts of a video (the main command; "
                                       "`surftrack VIDEO ...` means `surftrack track VIDEO ...`)")
-    tk.add_argument("video", help="video file, or a folder of videos")
+    tk.add_argument("video", help="video file, or a folder of videos (run as `surftrack batch`, on a local Ray)")
     tk.add_argument("--boxes", required=True, help="det.json or COCO detections (a folder for a folder of videos)")
     tk.add_argument("--camera", help="camera.json (K, width, height, dist) or a BOP scene_camera.json "
                                      "(default: <video stem>.camera.json or camera.json beside the video)")

@@ -1,5 +1,6 @@
-"""``surftrack batch`` on a real local Ray with 2 CPUs: a bad video is reported and skipped, the others
-finish with valid MCAPs, the manifest has a row per video, and a rerun processes nothing."""
+"""``surftrack batch`` (and the main command on a folder) on a real local Ray with 2 CPUs: a bad video is
+reported and skipped, the others finish with valid MCAPs, the manifest has a row per video, and a rerun
+of the batch processes nothing."""
 
 from __future__ import annotations
 
@@ -41,6 +42,13 @@ def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, c
     lines = (out / "manifest.jsonl").read_text().splitlines()[3:]
     assert sorted(json.loads(line)["status"] for line in lines) == ["failed", "skipped", "skipped"]
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")} == stamps
+
+    # the main command on a folder is the same batch (every video redone, like the main command on one)
+    folder_out = tmp_path / "main_out"
+    assert main([str(videos), "-o", str(folder_out), "--boxes", str(boxes), "--camera", str(clip / "camera.json"),
+                 "--model", str(tiny_ckpt), "--quiet"]) == EXIT_BATCH_INCOMPLETE
+    assert "surftrack batch: 2 of 3 videos finished" in capsys.readouterr().out
+    assert sorted(p.name for p in folder_out.glob("*.mcap")) == ["b_good.mcap", "c_good.mcap"]
 
 
 def test_sigterm_stops_a_batch_with_finished_files(clip, tiny_ckpt, tmp_path):

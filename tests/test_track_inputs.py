@@ -5,8 +5,9 @@ import json
 import shutil
 
 import pytest
+from mcap.reader import make_reader
 
-from surftrack.cli import main
+from surftrack.cli import EXIT_BATCH_INCOMPLETE, main
 
 
 def _run(capsys, args):
@@ -196,9 +197,12 @@ def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp
     rc = main([str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet",
                "--end", "0.25"])
     assert rc == 0, capsys.readouterr().err
-    assert sorted(p.name for p in out.iterdir()) == ["a.mcap", "b.mcap"]
-    (boxes / "b.json").unlink()
-    _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"], "b.json")
+    assert sorted(p.name for p in out.iterdir()) == ["a.mcap", "b.mcap", "manifest.jsonl"]
+    with open(out / "a.mcap", "rb") as f:  # --end reaches every video of the folder
+        assert make_reader(f).get_summary().statistics.message_end_time == 200_000_000
+    (boxes / "b.json").unlink()  # one video's problem no longer stops the folder: it is reported and skipped
+    rc = main([str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"])
+    assert rc == EXIT_BATCH_INCOMPLETE and "b.json" in capsys.readouterr().out
     shutil.copy(clip / "video.mp4", vids / "a.mov")
     _check(capsys, [str(vids), "--boxes", str(boxes), "--model", str(tiny_ckpt), "-o", str(out), "--quiet"],
            "a.mov", "a.mcap")
