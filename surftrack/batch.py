@@ -7,7 +7,9 @@ on this machine; ``"auto"`` or ``"ray://host:port"`` joins a cluster, whose work
 given (Ray reuses worker processes), and asks for a GPU when the cluster has one. Each video writes
 ``OUT/<stem>.mcap``; ``OUT/manifest.jsonl`` gets one line per video as it ends: status (``done``,
 ``partial``: the video stopped decoding part of the way through, ``failed``, ``skipped``: done before,
-``stopped``: the batch was stopped first), frames, seconds, frames/s and the error line.
+``stopped``: the batch was stopped first), frames, seconds, frames/s and the error line. The progress
+bar counts videos and shows the frames done over all of them, running ones included (each reports its
+count every 10 frames in ``OUT/.progress/``, removed at the end).
 
 A batch stopped by Ctrl-C or SIGTERM cancels the videos not yet started and writes ``OUT/.stop``; a running
 video checks for that file after every frame and stops as a single run does on Ctrl-C, finalising its
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import signal
 import threading
 import time
@@ -133,8 +136,16 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
         key = (str(opts.model or default_model_path()), opts.device or "cpu")
         if key not in _LOADED:
             _LOADED[key] = load_checkpoint(key[0], key[1])[:2]
+        progress, done = _progress_file(stop_file, job), [0]
+
+        def on_frame(*_) -> None:
+            _stop_if(stop_file)
+            done[0] += 1
+            if done[0] % 10 == 0:  # the driver's bar shows the frames done over every running video
+                progress.write_text(str(done[0]))
+
         s = annotate_video(job.video, job.boxes, replace(opts, out=job.out, camera=job.camera),
-                           checkpoint=_LOADED[key], on_frame=lambda *_: _stop_if(stop_file))
+                           checkpoint=_LOADED[key], on_frame=on_frame)
         row.update(status="partial" if s["partial"] else "done", frames=s["frames"], fps=round(s["fps"], 3))
         if s["partial"]:
             p = s["partial"]
@@ -146,6 +157,21 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
         row.update(status="stopped", frames=getattr(e, "frames_done", 0), error="stopped before the end")
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def _progress_file(stop_file: Path, job: BatchJob) -> Path:
+    """Where a running video reports its frames done (beside the stop file, in the output folder)."""
+    return stop_file.parent / ".progress" / f"{job.out.stem}.frames"
+
+
+def _frames_running(stop_file: Path, jobs) -> int:
+    total = 0
+    for job in jobs:
+        try:
+            total += int(_progress_file(stop_file, job).read_text() or 0)
+        except (OSError, ValueError):
+            continue
+    return total
 
 
 def _stop_if(stop_file: Path) -> None:
@@ -220,17 +246,20 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=0)(_track)
         if gpus:
             opts = replace(opts, device=opts.device or "cuda")
+        shutil.rmtree(stop_file.parent / ".progress", ignore_errors=True)
+        (stop_file.parent / ".progress").mkdir()
         pending = {task.remote(job, opts, stop_file): job for job in todo}
         bar = tqdm(total=len(todo), unit="video", desc="batch", disable=not progress)
         frames = 0
         try:
             while pending:
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                job = pending.pop(ready[0])
-                record(ray.get(ready[0]))
-                frames += rows[-1]["frames"]
-                bar.update(1)
-                bar.set_postfix(frames=frames)
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                if ready:
+                    job = pending.pop(ready[0])
+                    record(ray.get(ready[0]))
+                    frames += rows[-1]["frames"]
+                    bar.update(1)
+                bar.set_postfix(frames=frames + _frames_running(stop_file, pending.values()))
         except KeyboardInterrupt:
             stop_file.touch()  # running videos stop after their current frame and finalise their outputs
             for ref in pending:
@@ -245,6 +274,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         finally:
             bar.close()
             stop_file.unlink(missing_ok=True)
+            shutil.rmtree(stop_file.parent / ".progress", ignore_errors=True)
     finally:
         if started_here:
             ray.shutdown()

@@ -35,7 +35,7 @@ def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, c
         assert r["status"] == "done" and r["frames"] == 15 and r["fps"] > 0
         with open(out / f"{stem}.mcap", "rb") as f:
             assert make_reader(f).get_summary().statistics.message_end_time == 1_400_000_000
-    assert not (out / "a_bad.mcap").exists()
+    assert not (out / "a_bad.mcap").exists() and not (out / ".progress").exists()
     stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")}
 
     assert main(args) == EXIT_BATCH_INCOMPLETE  # the bad video is still bad; the good ones are not redone
@@ -82,3 +82,14 @@ def test_sigterm_stops_a_batch_with_finished_files(clip, tiny_ckpt, tmp_path):
         with open(p, "rb") as f:
             assert make_reader(f).get_summary() is not None, p
     assert not (out / ".stop").exists()
+
+
+def test_progress_counts_the_frames_of_running_videos(tmp_path):
+    from surftrack.batch import BatchJob, _frames_running, _progress_file
+
+    stop = tmp_path / ".stop"
+    jobs = [BatchJob(tmp_path / f"{s}.mp4", None, None, tmp_path / f"{s}.mcap") for s in "abc"]
+    (tmp_path / ".progress").mkdir()
+    _progress_file(stop, jobs[0]).write_text("30")
+    _progress_file(stop, jobs[1]).write_text("")  # being written
+    assert _frames_running(stop, jobs) == 30  # c has not reported yet
