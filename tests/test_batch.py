@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import pytest
 from mcap.reader import make_reader
 
 from surftrack.cli import EXIT_BATCH_INCOMPLETE, main
@@ -93,3 +94,32 @@ def test_progress_counts_the_frames_of_running_videos(tmp_path):
     _progress_file(stop, jobs[0]).write_text("30")
     _progress_file(stop, jobs[1]).write_text("")  # being written
     assert _frames_running(stop, jobs) == 30  # c has not reported yet
+
+
+@pytest.mark.slow
+def test_batch_joins_a_running_cluster(clip, tiny_ckpt, tmp_path):
+    """The README's cluster recipe on one machine: `ray start --head`, then `surftrack batch --address auto`.
+    Slow and kept out of `make test`: `ray stop` ends every Ray process of the user, which would cut the
+    local Ray of a test running beside it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    ray_cli = Path(sys.executable).with_name("ray")
+    videos, boxes, out = tmp_path / "videos", tmp_path / "boxes", tmp_path / "out"
+    videos.mkdir()
+    boxes.mkdir()
+    shutil.copy(clip / "video.mp4", videos / "a.mp4")
+    shutil.copy(clip / "det.json", boxes / "a.json")
+    subprocess.run([str(ray_cli), "start", "--head", "--num-cpus", "2", "--disable-usage-stats",
+                    "--include-dashboard=false"], check=True, capture_output=True, timeout=180)
+    try:
+        r = subprocess.run([sys.executable, "-m", "surftrack.cli", "batch", str(videos), "--boxes", str(boxes),
+                            "--camera", str(clip / "camera.json"), "--model", str(tiny_ckpt), "-o", str(out),
+                            "--address", "auto", "--quiet"], capture_output=True, text=True, timeout=300)
+    finally:
+        subprocess.run([str(ray_cli), "stop"], capture_output=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "1 of 1 videos finished" in r.stdout
+    with open(out / "a.mcap", "rb") as f:
+        assert make_reader(f).get_summary().statistics.message_end_time == 1_400_000_000
