@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -291,9 +291,14 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                    disable=not opts.progress)
         keep_frames = opts.overlay is not None or opts.mcap_images
 
+        unwritten: deque = deque()  # frames the smoother let go that are not written yet
+
         def release(ready: list, notify: bool = True) -> None:
+            """Write ``ready`` (and anything an interruption left unwritten), oldest first."""
             nonlocal n_done
-            for k, ((index, t_s, frame, states), steps) in enumerate(ready):
+            unwritten.extend(ready)
+            while unwritten:
+                (index, t_s, frame, states), steps = unwritten.popleft()
                 states = [s.settled(steps.get(s.spec.name), opts.config) for s in states]
                 for s in states:
                     counts[s.spec.name][s.status] += 1
@@ -302,11 +307,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     sink.write(index, t_s, frame, states)
                 n_done += 1  # its outputs are written: counted even when on_frame stops the run
                 if notify and on_frame is not None:
-                    try:
-                        on_frame(index, t_s, states)
-                    except KeyboardInterrupt:  # asked to stop: the frames already smoothed are written
-                        release(ready[k + 1:], notify=False)
-                        raise
+                    on_frame(index, t_s, states)
 
         # frames wait here until the smoother has seen enough of their future (none when causal)
         smoother = LagSmoother(round(opts.config.smooth_lag_s * info.fps))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import signal
 import threading
@@ -142,7 +143,7 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
             _stop_if(stop_file)
             done[0] += 1
             if done[0] % 10 == 0:  # the driver's bar shows the frames done over every running video
-                progress.write_text(str(done[0]))
+                _report(progress, done[0])
 
         s = annotate_video(job.video, job.boxes, replace(opts, out=job.out, camera=job.camera),
                            checkpoint=_LOADED[key], on_frame=on_frame)
@@ -162,6 +163,16 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
 def _progress_file(stop_file: Path, job: BatchJob) -> Path:
     """Where a running video reports its frames done (beside the stop file, in the output folder)."""
     return stop_file.parent / ".progress" / f"{job.out.stem}.frames"
+
+
+def _report(progress: Path, frames: int) -> None:
+    """Best effort (a progress line must never fail a video), replaced atomically (never read half-written)."""
+    try:
+        tmp = progress.with_suffix(".tmp")
+        tmp.write_text(str(frames))
+        os.replace(tmp, progress)
+    except OSError:
+        pass
 
 
 def _frames_running(stop_file: Path, jobs) -> int:
@@ -247,7 +258,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         if gpus:
             opts = replace(opts, device=opts.device or "cuda")
         shutil.rmtree(stop_file.parent / ".progress", ignore_errors=True)
-        (stop_file.parent / ".progress").mkdir()
+        (stop_file.parent / ".progress").mkdir(exist_ok=True)
         pending = {task.remote(job, opts, stop_file): job for job in todo}
         bar = tqdm(total=len(todo), unit="video", desc="batch", disable=not progress)
         frames = 0
@@ -256,7 +267,10 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
                 ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
                 if ready:
                     job = pending.pop(ready[0])
-                    record(ray.get(ready[0]))
+                    try:
+                        record(ray.get(ready[0]))
+                    except Exception as e:  # noqa: BLE001 - a crash in one video (a worker died) fails that video only
+                        record(_row(job, "failed", " ".join(f"{type(e).__name__}: {e}".split())[:500]))
                     frames += rows[-1]["frames"]
                     bar.update(1)
                 bar.set_postfix(frames=frames + _frames_running(stop_file, pending.values()))

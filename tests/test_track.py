@@ -609,3 +609,15 @@ def test_confidence_falls_with_the_pose_covariance_and_a_rejected_estimate(lnd_p
     assert rejected.confidence == pytest.approx(cfg.confidence_rejected * confs[-1])
     lost = PartState(spec, "lost", 0.0, None, None, None)
     assert lost.settled(None, cfg) is lost
+
+
+def test_the_sparse_config_is_the_default_with_sparse_keyframes():
+    """configs/track/sparse.yaml repeats the default file: it may differ only in what makes it sparse."""
+    from surftrack.track import load_track_config
+
+    default, sparse = load_track_config().to_dict(), load_track_config("sparse").to_dict()
+    assert (sparse["keyframe_every"], sparse["kalman"]["accel_std_mm_s2"]) == (6, 60.0)
+    for d in (default, sparse):
+        d.pop("keyframe_every")
+        d["kalman"].pop("accel_std_mm_s2")
+    assert sparse == default

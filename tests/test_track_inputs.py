@@ -267,3 +267,26 @@ def test_analyze_bad_file(tmp_path, capsys):
     bad.write_bytes(b"not an mcap file at all")
     _check(capsys, ["analyze", str(bad)], "junk.mcap")
     _check(capsys, ["analyze", str(tmp_path / "missing.mcap")], "missing.mcap")
+
+
+def test_an_error_during_a_smoothed_run_still_writes_every_tracked_frame(clip, tiny_ckpt, tmp_path):
+    """An exception in the middle of writing (here from the on_frame hook, as frame 3 is written): the
+    frames already let go by the smoother and those still waiting are all written, in order, and the
+    MCAP is finished; the error propagates."""
+    from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.track import Status, TrackConfig
+
+    def fail(index, time_s, states):
+        if index == 3:
+            raise RuntimeError("boom")
+
+    opts = AnnotateOptions(model=tiny_ckpt, camera=clip / "camera.json", out=tmp_path / "x.mcap", progress=False,
+                           config=TrackConfig(smooth_lag_s=0.5), joints=False)
+    with pytest.raises(RuntimeError, match="boom"):
+        annotate_video(clip / "video.mp4", clip / "det.json", opts, on_frame=fail)
+    with open(tmp_path / "x.mcap", "rb") as f:
+        reader = make_reader(f)
+        times = [m.log_time for _, ch, m in reader.iter_messages() if ch.topic == "/parts/large_needle_driver.0.wrist/status"]
+    # frame 3 is written once frame 8 is tracked (a 5-frame lag): frames 0-8 were tracked, all are written
+    assert times == [k * 100_000_000 for k in range(9)]
+    assert str(Status.LOST) == "lost" and f"{Status.KEYFRAME}" == "keyframe"

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from enum import StrEnum
+from enum import Enum
 
 
-class Status(StrEnum):
+class Status(str, Enum):
     """A part's status on one frame (a ``str``: it is written as its value).
 
     * ``init``: not seen yet (no usable box so far);
@@ -21,6 +21,9 @@ class Status(StrEnum):
     TRACKING = "tracking"
     PREDICTED = "predicted"
     LOST = "lost"
+
+    def __str__(self) -> str:  # its value, as enum.StrEnum (Python >= 3.11) would give
+        return self.value
 
     @property
     def posed(self) -> bool:

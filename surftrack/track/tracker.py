@@ -235,7 +235,7 @@ class Tracker:
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
         tr.seeded = True
-        tr.unseen = 0
+        tr.unseen = tr.occluded = tr.since_refresh = 0
 
     # ------------------------------------------------------------------ the frame step
     def step(self, frame_rgb: np.ndarray, time_s: float,
@@ -294,6 +294,7 @@ class Tracker:
             tr.kf.predict(time_s)
             if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
                 tr.seeded = False
+                tr.kf.prior = None  # a new segment: the smoother does not link it to the old track
                 tr.info["source"] = "set_pose"
                 continue
             tr.since_keyframe += 1
