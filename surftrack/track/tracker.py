@@ -64,7 +64,9 @@ class PartState:
     """One part on one frame. ``R``, ``t`` (mm, model-to-camera) are None when there is no pose.
     ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: diagnostics (points, inliers,
     RMS px, Mahalanobis d2, estimator score, why the estimator ran, ``kinematic``: whether the estimate
-    was replaced by the instrument fit's pose)."""
+    was replaced by the instrument fit's pose). ``confidence`` as :meth:`Tracker.step` returns it is the
+    tracker's own working value (estimator score, decaying without a measurement); what a run writes is
+    :meth:`settled`'s, from the covariance."""
 
     spec: PartSpec
     status: Status
