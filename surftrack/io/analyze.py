@@ -85,8 +85,9 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     jerks = []
     for k in range(2, len(times_ns) - 2):
         win = times_ns[k - 2:k + 3]
-        if not all(tracked[n] for n in win):
-            continue
+        steps = np.diff(win)
+        if not all(tracked[n] for n in win) or steps.min() <= 0 or steps.max() > 1.1 * steps.min():
+            continue  # the difference needs evenly spaced frames (none missing)
         dt = (win[-1] - win[0]) * 1e-9 / 4.0
         x = [xyz_mm[n] for n in win]
         jerks.append(float(np.linalg.norm(x[4] - 2.0 * x[3] + 2.0 * x[1] - x[0]) / (2.0 * dt**3)))
