@@ -34,9 +34,6 @@ from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
 from surftrack.track.smoother import LagSmoother
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
-
-
 @dataclass
 class AnnotateOptions:
     """What to write and how to track. ``start``/``end``: seconds of video time (None = from the start /

@@ -29,13 +29,15 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from surftrack.annotate import VIDEO_SUFFIXES, AnnotateOptions, annotate_video
+from surftrack.annotate import AnnotateOptions, annotate_video
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
 __all__ = ["BatchJob", "batch_jobs", "check_job", "run_batch"]
 
 #: statuses of a manifest row that count as finished
 FINISHED = ("done", "skipped")
+#: what a folder of videos holds
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 
 
 @dataclass(frozen=True)
@@ -160,9 +162,13 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
     return row
 
 
+def _progress_dir(stop_file: Path) -> Path:
+    """Where running videos report their frames done (beside the stop file, in the output folder)."""
+    return stop_file.parent / ".progress"
+
+
 def _progress_file(stop_file: Path, job: BatchJob) -> Path:
-    """Where a running video reports its frames done (beside the stop file, in the output folder)."""
-    return stop_file.parent / ".progress" / f"{job.out.stem}.frames"
+    return _progress_dir(stop_file) / f"{job.out.stem}.frames"
 
 
 def _report(progress: Path, frames: int) -> None:
@@ -204,8 +210,6 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
     the jobs'). ``workers``: concurrent videos on a local Ray (default: the cores). ``force``: redo videos
     an earlier run finished. Ctrl-C or SIGTERM cancels the running videos, which finalise their outputs,
     marks the rest ``stopped`` in the manifest and re-raises."""
-    import os
-
     import ray
     from tqdm import tqdm
 
@@ -257,8 +261,8 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         task = ray.remote(num_cpus=1, num_gpus=gpus, max_retries=0)(_track)
         if gpus:
             opts = replace(opts, device=opts.device or "cuda")
-        shutil.rmtree(stop_file.parent / ".progress", ignore_errors=True)
-        (stop_file.parent / ".progress").mkdir(exist_ok=True)
+        shutil.rmtree(_progress_dir(stop_file), ignore_errors=True)
+        _progress_dir(stop_file).mkdir(exist_ok=True)
         pending = {task.remote(job, opts, stop_file): job for job in todo}
         bar = tqdm(total=len(todo), unit="video", desc="batch", disable=not progress)
         frames = 0
@@ -288,7 +292,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         finally:
             bar.close()
             stop_file.unlink(missing_ok=True)
-            shutil.rmtree(stop_file.parent / ".progress", ignore_errors=True)
+            shutil.rmtree(_progress_dir(stop_file), ignore_errors=True)
     finally:
         if started_here:
             ray.shutdown()

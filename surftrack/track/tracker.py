@@ -206,7 +206,8 @@ class Tracker:
 
     def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
-        estimator's noise (then the fitted pose replaces the track; otherwise it is an ordinary keyframe)."""
+        estimator's noise (then a keyframe whose prior won is fused as a measurement, not taken as a
+        confirmation)."""
         if not res.counts.get("kinematic"):
             return False
         dr, dt = pose_distance(res.R, res.t, *prior)
@@ -266,11 +267,10 @@ class Tracker:
     def _propagate(self, gray: np.ndarray, time_s: float) -> None:
         """Predict every tracked part to ``time_s``; between keyframes, measure it by flow (LK + PnP)."""
         cfg, K = self.cfg, self.K
-        # predict, flow, PnP, gated update. LK runs once for the points of
-        # all parts (one image pyramid per frame), its time shared out by point count.
-        # a part the estimator measures this frame anyway (its cadence is due) gets no flow measurement:
-        # flow's error repeats the pose its points were lifted at, and fused next to the estimator it
-        # pulls the track back towards its own drift
+        # LK runs once for the points of all parts (one image pyramid per frame), its time shared out by
+        # point count. A part the estimator measures this frame anyway (its cadence is due) gets no flow
+        # measurement: flow's error repeats the pose its points were lifted at, and fused next to the
+        # estimator it pulls the track back towards its own drift.
         for tr in self.tracks:
             if tr.has_pose and (not cfg.flow or tr.since_keyframe + 1 >= cfg.keyframe_every):
                 tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
