@@ -242,12 +242,12 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     fitters = {}
     joints = opts.joints or opts.joints_csv is not None
     if joints or opts.config.kinematic:
-        from surftrack.pose.kinematic import described_instrument, part_hashes
+        from surftrack.pose.kinematic import described_instrument, instrument_parts
         from surftrack.track.articulation import ArticulationTracker
 
-        hashes = part_hashes(model.parts)
+        by_instrument = instrument_parts(model.parts)
         for inst in sorted({s.instrument for s in specs}):
-            described, why = described_instrument(inst, hashes[inst], caller_reports=True,
+            described, why = described_instrument(inst, by_instrument[inst], caller_reports=True,
                                                   registry=opts.instruments)
             if described is None:
                 lost = " and ".join(w for w, on in (("no joint angles", joints),

@@ -120,15 +120,38 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_instruments(args: argparse.Namespace) -> int:
     from surftrack.instruments import export_bop_models
+    from surftrack.instruments.check import size_warnings
 
     registry = _registry(args)
     names = args.names or registry.names()
     insts = [registry.load(n) for n in names]
+    if args.figure:
+        from PIL import Image
+
+        from surftrack.render.frames_figure import joint_frames_figure
+
+        if len(insts) != 1:
+            raise CLIError(f"--figure draws one instrument; name one (got {len(insts)})")
+        Image.fromarray(joint_frames_figure(insts[0])).save(args.figure)
+        print(f"wrote {args.figure}")
+    if args.check:
+        from surftrack.instruments.check import check_instrument
+
+        warnings = 0
+        for inst in insts:
+            report = check_instrument(inst)
+            print("\n".join(report.lines))
+            for w in report.warnings:
+                print(f"  warning: {w}")
+            warnings += len(report.warnings)
+        return 1 if warnings else 0
     for inst in insts:
         print(f"{inst.name} ({', '.join(inst.aliases) or 'no alias'}): {inst.description}")
         for pname, part in inst.parts.items():
             print(f"  {pname:12s} {len(part.mesh.faces):6d} faces  diameter {part.diameter_max_pairwise:6.2f} mm "
                   f"(bbox diagonal {part.diameter_bbox_diagonal:6.2f})  watertight={part.mesh.is_watertight}")
+        for w in size_warnings(inst):
+            print(f"  warning: {w}")
     if args.export:
         ids = export_bop_models(insts, args.export)
         print(f"wrote {len(ids)} models to {args.export}")
@@ -137,7 +160,7 @@ def _cmd_instruments(args: argparse.Namespace) -> int:
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from surftrack.synth.config import load_synth_config
-    from surftrack.synth.generate import generate_dataset
+    from surftrack.synth.generate import generate_dataset, likely_cause
 
     overrides = {}
     if args.instruments:
@@ -151,11 +174,18 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     out = Path(args.out)
     r = generate_dataset(out, cfg, args.images, seed=args.seed, workers=args.workers, progress=not args.quiet,
                          instruments=_registry(args))
+    rejections = ", ".join(f"{k} {v}" for k, v in r.rejections.items())
+    if r.made == 0 and r.skipped == 0:
+        raise CLIError(f"{out}: no image accepted in {r.attempts} attempts (rejections: {rejections}); "
+                       f"likely cause: {likely_cause(r.rejections)}")
     print(f"surftrack synth: {r.made} images made, {r.skipped} already there, {r.failed} failed "
           f"in {r.seconds:.1f} s ({r.made / max(r.seconds, 1e-9):.2f} images/s, {args.workers} worker(s))")
-    print(f"  acceptance {r.acceptance_rate:.1%} of {r.attempts} attempts; rejections: "
-          + ", ".join(f"{k} {v}" for k, v in r.rejections.items()))
-    print(f"wrote {out / cfg.output.split}, {out / 'models'}, {out / 'dataset_card.json'}, {out / 'contact_sheet.png'}")
+    print(f"  acceptance {r.acceptance_rate:.1%} of {r.attempts} attempts; rejections: {rejections}")
+    if r.failed:
+        print(f"  warning: {r.failed} images found no valid scene in {cfg.rejection.max_attempts} attempts; "
+              f"likely cause: {likely_cause(r.rejections)}")
+    written = [out / cfg.output.split, out / "models", out / "dataset_card.json", out / "contact_sheet.png"]
+    print(f"wrote {', '.join(str(w) for w in written if w.exists())}")
     return 0
 
 
@@ -390,6 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("names", nargs="*", help="instrument names, aliases or YAML files (default: all known, "
                                            "built-in and from $SURFTRACK_INSTRUMENTS)")
     i.add_argument("--export", metavar="DIR", help="write a BOP models/ folder with models_info.json")
+    i.add_argument("--check", action="store_true", help="check each part and pair of parts (sizes, contacts at rest, "
+                                                       "collisions over the joint range); exit 1 on a warning")
+    i.add_argument("--figure", metavar="PNG", help="draw the joint frames of one instrument (rest and bent)")
     i.set_defaults(func=_cmd_instruments)
     sy = sub.add_parser("synth", help="generate a SynSurg6D-style BOP dataset (resumable)")
     sy.add_argument("--out", required=True, help="dataset folder (created; an existing one is resumed)")
@@ -522,6 +555,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.data import DatasetError
     from surftrack.instruments import InstrumentError
     from surftrack.render import RenderError
+    from surftrack.synth.clip import ClipError
     from surftrack.synth.config import ConfigError
 
     from surftrack.model.checkpoint import CheckpointError
@@ -529,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from surftrack.track import InputError, TrackConfigError
 
-    errors = (CLIError, InstrumentError, RenderError, ConfigError, TrainConfigError, CheckpointError,
+    errors = (CLIError, InstrumentError, RenderError, ConfigError, ClipError, TrainConfigError, CheckpointError,
               DatasetError, InputError, TrackConfigError, OSError)
 
     parser = build_parser()

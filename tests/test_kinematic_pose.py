@@ -142,6 +142,7 @@ def test_apply_kinematics_leaves_what_it_cannot_fit(lnd, monkeypatch):
     assert all(o is s for o, s in zip(out, unknown))
     foreign = _infos(lnd)
     foreign[1].mesh_sha256 = "0" * 64  # the model was trained on another wrist mesh
+    foreign[1].vertices = foreign[1].vertices + [0.0, 0.0, 0.01]
     with pytest.warns(UserWarning, match="differ"):
         out = apply_kinematics(split, [0] * 4, foreign)
     assert all(o is s for o, s in zip(out, split))

@@ -283,8 +283,8 @@ def _observability(J: np.ndarray, tol: float) -> tuple[dict[str, bool], list[str
 
 def _pair_relations(instrument: Instrument, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Linear equations ``A q = b`` in the joint variables from the relative rotations of seen parts:
-    a part and its parent (``R_parent^T R_part`` turns about the joint axis by the part's joint angle)
-    and two siblings on the same axis and origin (their relative rotation is the difference of their
+    a part and its parent (``R_parent^T R_part``, less the joint's fixed rotation, turns about the joint axis
+    by the part's joint angle) and two siblings on the same joint frame and axis (their relative rotation is the difference of their
     angles, e.g. the jaw opening)."""
     chain = instrument.chain.joints
     rows, rhs = [], []
@@ -296,17 +296,22 @@ def _pair_relations(instrument: Instrument, poses: dict[str, np.ndarray]) -> tup
         a = np.asarray(axis, dtype=np.float64)
         return a / np.linalg.norm(a)
 
+    def fixed(name: str) -> np.ndarray:
+        return np.asarray(chain[name].rotation, dtype=np.float64).reshape(3, 3)
+
     seen = [n for n in instrument.chain.order if n in poses]
     for name in seen:
         j = chain[name]
         if j.parent in poses:
             rows.append(coeffs(name))
-            rhs.append(_axis_angle(poses[j.parent][:3, :3].T @ poses[name][:3, :3], unit(j.axis)))
+            rel = fixed(name).T @ poses[j.parent][:3, :3].T @ poses[name][:3, :3]
+            rhs.append(_axis_angle(rel, unit(j.axis)))
     for i, a in enumerate(seen):
         for b in seen[i + 1:]:
             ja, jb = chain[a], chain[b]
             if (ja.parent is None or ja.parent != jb.parent or ja.parent in poses
-                    or not np.allclose(ja.origin, jb.origin) or not np.allclose(unit(ja.axis), unit(jb.axis))):
+                    or not np.allclose(ja.origin, jb.origin) or not np.allclose(unit(ja.axis), unit(jb.axis))
+                    or not np.allclose(fixed(a), fixed(b))):
                 continue
             rows.append(coeffs(b) - coeffs(a))
             rhs.append(_axis_angle(poses[a][:3, :3].T @ poses[b][:3, :3], unit(ja.axis)))

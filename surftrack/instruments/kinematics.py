@@ -43,12 +43,17 @@ class JointState:
 
 @dataclass(frozen=True)
 class PartJoint:
-    """Revolute joint of one part: ``T_parent_part = T(origin) @ Rot(axis, sum_k coeff_k * q_k)``."""
+    """Revolute joint of one part: ``T_parent_part = T(origin) @ R_fixed @ Rot(axis, sum_k coeff_k * q_k)``.
+
+    ``origin`` (mm) and ``rotation`` (the fixed rotation, row-major 3x3; identity by default) place the
+    joint frame in the parent's frame, as a URDF joint's ``<origin xyz rpy>`` does; ``axis`` is expressed
+    in the joint frame, which is the part's frame at zero angle."""
 
     parent: str | None
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     coefficients: dict[str, float] = field(default_factory=dict)
+    rotation: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
         bad = set(self.coefficients) - set(JOINT_NAMES)
@@ -56,13 +61,17 @@ class PartJoint:
             raise ValueError(f"joint angle refers to unknown joint(s) {sorted(bad)}; joints are {JOINT_NAMES}")
         if np.linalg.norm(self.axis) < 1e-9:
             raise ValueError("joint axis must be non-zero")
+        R = np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError("joint rotation must be a proper rotation")
 
     def angle(self, q: JointState) -> float:
         return float(sum(c * getattr(q, k) for k, c in self.coefficients.items()))
 
     def transform(self, q: JointState) -> np.ndarray:
         """Pose of the part in its parent's frame (the base frame for the root part)."""
-        return se3(rotation_about(self.axis, self.angle(q)), np.asarray(self.origin, dtype=np.float64))
+        fixed = np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
+        return se3(fixed @ rotation_about(self.axis, self.angle(q)), np.asarray(self.origin, dtype=np.float64))
 
 
 @dataclass(frozen=True)

@@ -20,13 +20,20 @@ import yaml
 
 from surftrack.configio import yaml_problem
 from surftrack.geometry import transform_points
+from surftrack.instruments.cad import (
+    ROTATION_KEYS,
+    UNITS_TO_MM,
+    cut_shaft,
+    load_cad_mesh,
+    rotation_from_spec,
+    vector_from_spec,
+)
 from surftrack.instruments.kinematics import JOINT_NAMES, JointLimits, JointState, KinematicChain, PartJoint
 from surftrack.instruments.part import Material, Part
 from surftrack.instruments.procedural import build, finish
 from surftrack.paths import configs_dir
 
 INSTRUMENTS_ENV = "SURFTRACK_INSTRUMENTS"
-UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "inch": 25.4}
 
 
 class InstrumentError(ValueError):
@@ -53,6 +60,7 @@ class Instrument:
     aliases: tuple[str, ...] = ()
     attachments: list[Attachment] = field(default_factory=list)
     source: Path | None = None
+    derived_tips: tuple[str, ...] = ()  # parts whose ``tip`` keypoint was derived from the mesh
 
     @property
     def part_names(self) -> tuple[str, ...]:
@@ -71,34 +79,90 @@ class Instrument:
         return out
 
 
-def _load_mesh(spec: dict, base: Path, where: str) -> tuple[trimesh.Trimesh, dict[str, np.ndarray]]:
-    if "file" in spec:
-        path = (base / spec["file"]).expanduser()
-        units = spec.get("units")
-        if units not in UNITS_TO_MM:
-            raise InstrumentError(f"{where}: mesh 'units' must be one of {sorted(UNITS_TO_MM)}, got {units!r}")
-        if not path.is_file():
-            raise InstrumentError(f"{where}: mesh file {path} does not exist")
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        except Exception as e:  # trimesh raises many types for unreadable files
-            raise InstrumentError(f"{where}: cannot read mesh {path}: {e}") from None
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise InstrumentError(f"{where}: mesh {path} has no triangles")
-        mesh = mesh.copy()
-        mesh.apply_scale(UNITS_TO_MM[units])
-        return finish(mesh), {}
-    if "builder" in spec:
+TOP_KEYS = ("name", "aliases", "description", "joint_limits_deg", "parts")
+PART_KEYS = ("name", "parent", "mesh", "joint", "material", "keypoints", "attachments")
+FILE_MESH_KEYS = ("file", "units", "origin", *ROTATION_KEYS, "scale", "shaft_length_mm")
+JOINT_KEYS = ("axis", "origin", *ROTATION_KEYS, "angle")
+MATERIAL_KEYS = ("color", "metallic", "roughness")
+
+
+def _known_keys(spec: object, known: Sequence[str], where: str) -> dict:
+    """``spec`` as a mapping whose keys are all in ``known``; :class:`InstrumentError` naming the first
+    unknown key (a typo such as ``rotation:`` for ``rpy:`` must not be silently ignored)."""
+    if spec is None:
+        return {}
+    if not isinstance(spec, Mapping):
+        raise InstrumentError(f"{where}: expected a mapping of {', '.join(known)}, got {spec!r}")
+    for key in spec:
+        if key not in known:
+            raise InstrumentError(f"{where}: unknown key {key!r} (known: {', '.join(known)})")
+    return dict(spec)
+
+
+def _load_mesh(spec: object, base: Path, where: str) -> tuple[trimesh.Trimesh, dict[str, np.ndarray],
+                                                             trimesh.Trimesh | None]:
+    """(mesh in mm in the part frame, its builder's keypoints, the piece cut off by ``shaft_length_mm``
+    or None). ``spec`` is a builder with its parameters, a CAD file with ``units`` and an optional
+    transform (:mod:`surftrack.instruments.cad`), or a list of CAD files joined into one part."""
+    if isinstance(spec, list):
+        if not spec:
+            raise InstrumentError(f"{where}: an empty list of meshes")
+        loaded = [_load_mesh(s, base, f"{where} #{k}") for k, s in enumerate(spec)]
+        rest = [cut for _, _, cut in loaded if cut is not None]
+        return (finish(trimesh.util.concatenate([m for m, _, _ in loaded])), {},
+                trimesh.util.concatenate(rest) if rest else None)
+    if isinstance(spec, Mapping) and "builder" in spec:
         params = {k: v for k, v in spec.items() if k != "builder"}
         try:
-            return build(spec["builder"], **params)
+            mesh, kps = build(spec["builder"], **params)
         except (ValueError, TypeError) as e:
             raise InstrumentError(f"{where}: {e}") from None
-    raise InstrumentError(f"{where}: a mesh needs either 'builder' or 'file' (+ 'units')")
+        return mesh, kps, None
+    spec = _known_keys(spec, FILE_MESH_KEYS, where)
+    if "file" not in spec:
+        raise InstrumentError(f"{where}: a mesh needs either 'builder' or 'file' (+ 'units')")
+    path = (base / str(spec["file"])).expanduser()
+    units = spec.get("units")
+    if units not in UNITS_TO_MM:
+        raise InstrumentError(f"{where}: mesh 'units' must be one of {sorted(UNITS_TO_MM)}, got {units!r}")
+    if not path.is_file():
+        raise InstrumentError(f"{where}: mesh file {path} does not exist")
+    try:
+        mesh = load_cad_mesh(path, units, spec, where)
+    except ValueError as e:  # MeshFileError included
+        raise InstrumentError(str(e) if str(e).startswith(where) else f"{where}: {e}") from None
+    mesh, rest = finish(mesh), None
+    if "shaft_length_mm" in spec:
+        length = spec["shaft_length_mm"]
+        if not isinstance(length, (int, float)) or isinstance(length, bool) or not length > 0:
+            raise InstrumentError(f"{where}: shaft_length_mm must be a positive number of mm, got {length!r}")
+        try:
+            mesh, rest = cut_shaft(mesh, float(length))
+        except ValueError as e:
+            raise InstrumentError(f"{where}: {e}") from None
+    return mesh, {}, rest
+
+
+def _joint(spec: object, parent: object, where: str) -> PartJoint:
+    j = _known_keys(spec, JOINT_KEYS, f"{where} joint")
+    try:
+        rotation = rotation_from_spec(j, f"{where} joint")
+        origin = vector_from_spec(j, "origin", f"{where} joint")
+        axis = vector_from_spec(j, "axis", f"{where} joint", (0.0, 0.0, 1.0))
+        angle = j.get("angle") or {}
+        if not isinstance(angle, Mapping):
+            raise ValueError(f"{where} joint: angle must map joint names to coefficients, e.g. {{yaw: 1.0}}")
+        return PartJoint(parent=None if parent is None else str(parent), origin=tuple(origin), axis=tuple(axis),
+                         coefficients={str(k): float(v) for k, v in angle.items()},
+                         rotation=tuple(rotation.ravel()))
+    except (ValueError, TypeError) as e:
+        msg = str(e)
+        raise InstrumentError(msg if msg.startswith(where) else f"{where} joint: {msg}") from None
 
 
 def load_instrument_file(path: str | Path) -> Instrument:
-    """Build an :class:`Instrument` from its YAML description."""
+    """Build an :class:`Instrument` from its YAML description. Every key is checked: an unknown one is an
+    :class:`InstrumentError` naming it and the file."""
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
@@ -106,12 +170,15 @@ def load_instrument_file(path: str | Path) -> Instrument:
         raise InstrumentError(f"{path}: cannot read instrument description: {yaml_problem(e)}") from None
     if not isinstance(doc, dict) or not doc.get("parts"):
         raise InstrumentError(f"{path}: an instrument description needs 'name' and a list of 'parts'")
+    _known_keys(doc, TOP_KEYS, str(path))
     _, aliases = _checked_names(doc, path)
-    limits_deg = doc.get("joint_limits_deg", {})
+    limits_deg = _known_keys(doc.get("joint_limits_deg"), JOINT_NAMES, f"{path}: joint_limits_deg")
     try:
         limits = JointLimits({k: (float(np.radians(lo)), float(np.radians(hi))) for k, (lo, hi) in limits_deg.items()})
     except (ValueError, TypeError) as e:
         raise InstrumentError(f"{path}: joint_limits_deg: {e}") from None
+    if not isinstance(doc["parts"], list):
+        raise InstrumentError(f"{path}: 'parts' must be a list of parts")
     parts: dict[str, Part] = {}
     joints: dict[str, PartJoint] = {}
     attachments: list[Attachment] = []
@@ -122,30 +189,61 @@ def load_instrument_file(path: str | Path) -> Instrument:
         if name in parts:
             raise InstrumentError(f"{path}: part name {name!r} is used twice")
         where = f"{path}: part {name!r}"
-        mesh, kps = _load_mesh(p.get("mesh", {}), path.parent, where)
-        kps.update({k: np.asarray(v, dtype=np.float64) for k, v in (p.get("keypoints") or {}).items()})
-        j = p.get("joint", {})
+        _known_keys(p, PART_KEYS, where)
+        mesh, kps, rest = _load_mesh(p.get("mesh", {}), path.parent, f"{where} mesh")
+        if rest is not None:
+            attachments.append(Attachment(name, rest))
+        user_kps = p.get("keypoints") or {}
+        if not isinstance(user_kps, Mapping):
+            raise InstrumentError(f"{where} keypoints: expected a mapping of names to [x, y, z] (mm)")
         try:
-            joints[name] = PartJoint(parent=p.get("parent"), origin=tuple(j.get("origin", (0, 0, 0))),
-                                     axis=tuple(j.get("axis", (0, 0, 1))), coefficients=dict(j.get("angle", {})))
-            mat = dict(p.get("material") or {})
+            kps.update({str(k): vector_from_spec(user_kps, k, f"{where} keypoints") for k in user_kps})
+        except ValueError as e:
+            raise InstrumentError(str(e)) from None
+        joints[name] = _joint(p.get("joint"), p.get("parent"), where)
+        mat = _known_keys(p.get("material"), MATERIAL_KEYS, f"{where} material")
+        try:
             if "color" in mat:
                 mat["color"] = tuple(float(c) for c in mat["color"])
             parts[name] = Part(name, mesh, Material(**mat), kps)
         except (ValueError, TypeError) as e:
             raise InstrumentError(f"{where}: {e}") from None
         for k, a in enumerate(p.get("attachments") or []):
-            amesh, _ = _load_mesh(a, path.parent, f"{where} attachment #{k}")
+            amesh, _, _ = _load_mesh(a, path.parent, f"{where} attachment #{k}")
             attachments.append(Attachment(name, amesh))
     try:
         chain = KinematicChain(joints)
     except ValueError as e:
         raise InstrumentError(f"{path}: {e}") from None
-    return Instrument(
+    inst = Instrument(
         name=str(doc["name"]), parts={n: parts[n] for n in chain.order}, chain=chain, limits=limits,
         description=str(doc.get("description", "")), aliases=tuple(aliases),
         attachments=attachments, source=path,
     )
+    inst.derived_tips = tuple(derive_tips(inst))
+    return inst
+
+
+def tool_axis_in_part(instrument: Instrument, part: str) -> np.ndarray:
+    """Unit direction (3,) of the tool's axis (the shaft's +z, towards the tip) in ``part``'s frame at the
+    rest configuration (all joints zero)."""
+    pose = instrument.chain.forward(np.eye(4), JointState())[part]
+    return pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
+
+def derive_tips(instrument: Instrument) -> list[str]:
+    """Give every distal part (one no other part hangs from) without a ``tip`` keypoint one: its vertex
+    farthest along the tool's axis at rest. Synthesis places and frames the tool by its tips. Returns the
+    parts that got one."""
+    parents = {j.parent for j in instrument.chain.joints.values()}
+    derived = []
+    for name, part in instrument.parts.items():
+        if name in parents or "tip" in part.keypoints:
+            continue
+        v = np.asarray(part.mesh.vertices)
+        part.keypoints["tip"] = v[int(np.argmax(v @ tool_axis_in_part(instrument, name)))].astype(np.float64)
+        derived.append(name)
+    return derived
 
 
 @dataclass(frozen=True)

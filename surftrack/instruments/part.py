@@ -12,6 +12,22 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
 
+#: Two meshes are the same part when their triangles are the same and no vertex moved by more than this (mm).
+#: Storing a mesh as float32 (BOP ``models/*.ply``, checkpoints) moves a vertex up to 500 mm from the origin
+#: by < 3e-5 mm, while every byte of a hash changes; an edited CAD moves vertices by far more than 1e-3 mm.
+GEOMETRY_TOL_MM = 1e-3
+
+
+def same_geometry(vertices_a: np.ndarray, faces_a: np.ndarray, vertices_b: np.ndarray, faces_b: np.ndarray,
+                  tol_mm: float = GEOMETRY_TOL_MM) -> bool:
+    """Whether two meshes (vertices (N, 3) mm, faces (F, 3)) are one geometry: the same faces, in order,
+    and every vertex within ``tol_mm`` of its counterpart."""
+    va, vb = np.asarray(vertices_a, dtype=np.float64), np.asarray(vertices_b, dtype=np.float64)
+    fa, fb = np.asarray(faces_a), np.asarray(faces_b)
+    return (va.shape == vb.shape and fa.shape == fb.shape and bool(np.array_equal(fa, fb))
+            and bool(np.abs(va - vb).max(initial=0.0) <= tol_mm))
+
+
 @dataclass(frozen=True)
 class Material:
     """Surface appearance for the renderer: linear RGB base colour, metallic and roughness in [0, 1]."""
@@ -70,6 +86,11 @@ class Part:
         h.update(np.ascontiguousarray(self.mesh.vertices, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(self.mesh.faces, dtype=np.int64).tobytes())
         return h.hexdigest()
+
+    def same_geometry(self, vertices: np.ndarray, faces: np.ndarray, tol_mm: float = GEOMETRY_TOL_MM) -> bool:
+        """Whether this part's mesh is the mesh (``vertices`` mm, ``faces``) stored elsewhere (a checkpoint,
+        a dataset's model) within ``tol_mm``: part identity by geometry, not by file bytes."""
+        return same_geometry(self.mesh.vertices, self.mesh.faces, vertices, faces, tol_mm)
 
     def sample_surface(self, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Area-uniform surface samples (count, 3) in mm and their outward face normals (count, 3)."""

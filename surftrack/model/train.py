@@ -310,8 +310,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
             raise TrainConfigError("mixing data.real_data into batches is not supported with several processes yet "
                                    "(the mixed sampler is not split by rank)")
         real_bop = BopDataset(cfg.data.real_data, min_visib_fract=cfg.data.min_visib_fract)
-        if {o: real_bop.models[o].mesh_hash for o in real_bop.models} != {o: bop.models[o].mesh_hash for o in obj_ids
-                                                                       if o in real_bop.models} or not real_bop.models:
+        if not real_bop.models or any(o not in bop.models or not bop.models[o].same_geometry(m.mesh.vertices, m.mesh.faces)
+                                      for o, m in real_bop.models.items()):
             raise TrainConfigError(f"{cfg.data.real_data}: its models differ from those of {data_dir}")
         real_ds = CropDataset(real_bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
                               augment=cfg.data.augment, seed=cfg.run.seed + 1, **common)

@@ -49,7 +49,7 @@ from surftrack.pose.kinematic import (
     apply_kinematics,
     check_anchor,
     described_instrument,
-    part_hashes,
+    instrument_parts,
 )
 
 __all__ = ["GROUPS", "evaluate", "evaluate_seeds", "group_stats", "markdown_table", "pose_errors", "seed_table",
@@ -230,8 +230,8 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
     bop = BopDataset(data_dir, split, min_visib_fract=min_visib_fract, min_px_visib=min_px_visib)
     warn: list[str] = []
     fitted: list[str] = []
-    for name, hashes in sorted(part_hashes(est.model.parts).items()) if kinematic else []:
-        inst, why = described_instrument(name, hashes, caller_reports=True, registry=instruments)
+    for name, parts in sorted(instrument_parts(est.model.parts).items()) if kinematic else []:
+        inst, why = described_instrument(name, parts, caller_reports=True, registry=instruments)
         if inst is None:
             warn.append(f"{why}: its parts are evaluated on their per-part poses")
         else:
@@ -239,7 +239,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
 
     known = {p.obj_id: p for p in est.model.parts}
     for o, info in known.items():
-        if o in bop.models and bop.models[o].mesh_hash != info.mesh_sha256:
+        if o in bop.models and not bop.models[o].same_geometry(info.vertices, info.faces):
             warn.append(f"obj {o}: the dataset's model differs from the checkpoint's mesh ({info.name}); "
                         f"errors use the dataset's model")
     insts = [i for i in bop.instances if i.obj_id in known]

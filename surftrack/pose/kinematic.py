@@ -30,6 +30,7 @@ import math
 import warnings
 from collections import defaultdict
 from collections.abc import Hashable, Mapping, Sequence
+from typing import Any
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,7 @@ from surftrack.instruments import (
     JointFit,
     fit_configuration,
 )
+from surftrack.instruments.part import GEOMETRY_TOL_MM
 
 
 @dataclass(frozen=True)
@@ -88,15 +90,18 @@ _instruments: dict[tuple, tuple[Instrument | None, str]] = {}
 _warned: set[str] = set()
 
 
-def described_instrument(name: str, part_hashes: Mapping[str, str] | None = None,
+def described_instrument(name: str, model_parts: Mapping[str, Any] | None = None,
                          caller_reports: bool = False,
                          registry: InstrumentRegistry = BUILTIN) -> tuple[Instrument | None, str]:
     """(instrument, "") for the instrument ``name`` known to ``registry`` when its parts' meshes are those
-    the model was trained on (``part_hashes``: part name -> mesh SHA-256, from the checkpoint); else (None,
-    why not): unknown, or other meshes, so no kinematic model applies. ``caller_reports``: the caller tells
-    the user why, so :func:`kinematic_instrument` does not warn about it. Cached per process, registry and
-    hashes (edit a description, restart)."""
-    key = (name, registry, tuple(sorted((part_hashes or {}).items())))
+    the model was trained on (``model_parts``: part name -> the checkpoint's :class:`PartInfo`, compared by
+    geometry within :data:`~surftrack.instruments.part.GEOMETRY_TOL_MM`, so a CAD whose dataset models went
+    through a float32 round trip still matches); else (None, why not): unknown, or other meshes, so no
+    kinematic model applies. ``caller_reports``: the caller tells the user why, so
+    :func:`kinematic_instrument` does not warn about it. Cached per process, registry and mesh hashes
+    (edit a description, restart)."""
+    model_parts = model_parts or {}
+    key = (name, registry, tuple(sorted((p, info.mesh_sha256) for p, info in model_parts.items())))
     if key not in _instruments:
         try:
             inst: Instrument | None = registry.load(name)
@@ -105,30 +110,33 @@ def described_instrument(name: str, part_hashes: Mapping[str, str] | None = None
             inst, why = None, (f"instrument {name!r} has no description (built-in, or its YAML passed with "
                                f"--instrument or listed in $SURFTRACK_INSTRUMENTS)")
         if inst is not None:
-            bad = [p for p, h in (part_hashes or {}).items() if p not in inst.parts or inst.parts[p].mesh_hash != h]
+            bad = [p for p, info in model_parts.items()
+                   if p not in inst.parts or not (inst.parts[p].mesh_hash == info.mesh_sha256
+                                                  or inst.parts[p].same_geometry(info.vertices, info.faces))]
             if bad:
                 where = inst.source or "its description"
-                inst, why = None, f"instrument {name!r}: the model's meshes of {bad} differ from those of {where}"
+                inst, why = None, (f"instrument {name!r}: the model's meshes of {bad} differ from those of {where} "
+                                   f"(by more than {GEOMETRY_TOL_MM:g} mm)")
         _instruments[key] = (inst, why)
     if caller_reports and _instruments[key][1]:
         _warned.add(_instruments[key][1])
     return _instruments[key]
 
 
-def part_hashes(model_parts: Sequence) -> dict[str, dict[str, str]]:
-    """Instrument -> {part: mesh SHA-256} of a model's parts (``model.parts``), as
-    :func:`described_instrument` takes them."""
-    out: dict[str, dict[str, str]] = defaultdict(dict)
+def instrument_parts(model_parts: Sequence) -> dict[str, dict[str, Any]]:
+    """Instrument -> {part: PartInfo} of a model's parts (``model.parts``), as :func:`described_instrument`
+    takes them."""
+    out: dict[str, dict[str, Any]] = defaultdict(dict)
     for info in model_parts:
-        out[info.instrument][info.name] = info.mesh_sha256
+        out[info.instrument][info.name] = info
     return dict(out)
 
 
-def kinematic_instrument(name: str, part_hashes: Mapping[str, str] | None = None,
+def kinematic_instrument(name: str, model_parts: Mapping[str, Any] | None = None,
                          registry: InstrumentRegistry = BUILTIN) -> Instrument | None:
     """:func:`described_instrument`'s instrument; None with one warning (per process and cause) when
     there is none, so its parts keep their per-part poses."""
-    inst, why = described_instrument(name, part_hashes, registry=registry)
+    inst, why = described_instrument(name, model_parts, registry=registry)
     if inst is None and why not in _warned:
         _warned.add(why)
         warnings.warn(f"{why}: its parts keep their per-part poses", stacklevel=2)
@@ -157,7 +165,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
 
     ``groups[i]``: the instrument instance ``results[i]`` belongs to (parts of one instrument with the same
     key are fitted together). ``model_parts``: the model's :class:`PartInfo` list (``model.parts``), whose
-    mesh hashes must match the instrument description's (found in ``registry``).
+    meshes must match the instrument description's (found in ``registry``).
     A group is fitted only when its anchor part (``config.anchor``) was estimated and seen (score > 0:
     some pixel supports its pose; a score <= 0 anchor is the network seeing nothing of it, and the tracker
     drops such a part rather than trust it). Every part of a fitted group takes its fitted pose, the anchor
@@ -167,7 +175,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
     if len(groups) != len(results):
         raise ValueError(f"need one group key per result, got {len(groups)} for {len(results)}")
     cfg = config or KinematicConfig()
-    hashes = part_hashes(model_parts)
+    by_instrument = instrument_parts(model_parts)
     members: dict[tuple, list[int]] = defaultdict(list)
     for i, (r, g) in enumerate(zip(results, groups)):
         members[(r.instrument, g)].append(i)
@@ -176,7 +184,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
         parts = [results[i].part for i in idx]
         if len(idx) < 2 or len(set(parts)) != len(parts):
             continue
-        inst = kinematic_instrument(name, hashes.get(name), registry)
+        inst = kinematic_instrument(name, by_instrument.get(name), registry)
         if inst is None:
             continue
         obs = {results[i].part: (results[i].R, results[i].t, results[i].score) for i in idx if results[i].ok}

@@ -7,6 +7,7 @@ import trimesh
 
 from surftrack.geometry import PinholeCamera, transform_points
 from surftrack.instruments import Instrument
+from surftrack.instruments.contacts import ContactRule, depths_of
 from surftrack.synth.sampling import InstrumentSample
 from surftrack.synth.tissue import Tissue
 
@@ -50,11 +51,13 @@ class TissueCollision:
 class PartCollision:
     """Mesh-mesh collisions (python-fcl) among the parts of up to ``slots`` posed instruments, shaft
     extensions included. One collision manager per (slot, instrument): the parts of an instrument are
-    tested with each other (its shaft extension is not: it overlaps its own shaft by design and sits
-    behind it, out of reach of the other parts), and every pair of instruments across managers."""
+    tested with each other under its :class:`ContactRule` (pairs touching at rest are not tested, parts
+    linked by a joint may touch; its shaft extension is not tested: it overlaps its own shaft by design and
+    sits behind it, out of reach of the other parts), and every pair of instruments across managers."""
 
     def __init__(self, instruments: list[Instrument], slots: int = 2):
         self.managers: dict[tuple[int, str], tuple[trimesh.collision.CollisionManager, list[tuple[str, str]]]] = {}
+        self.rules = {inst.name: ContactRule.of(inst) for inst in instruments}
         for slot in range(slots):
             for inst in instruments:
                 m, names = trimesh.collision.CollisionManager(), []
@@ -75,11 +78,13 @@ class PartCollision:
                 m.set_transform(obj, poses[part])
             managers.append(m)
         out = []
-        for slot, m in enumerate(managers):
-            hit, pairs = m.in_collision_internal(return_names=True)
-            if hit:
-                out += [(f"{slot}|{a}", f"{slot}|{b}") for a, b in sorted(tuple(sorted(p)) for p in pairs)
-                        if "|ext" not in a and "|ext" not in b]
+        for slot, (m, (inst, _)) in enumerate(zip(managers, posed)):
+            hit = m.in_collision_internal()
+            if not hit:
+                continue
+            rule = self.rules[inst.name]
+            out += [(f"{slot}|{a}", f"{slot}|{b}") for (a, b), depth in sorted(depths_of(m).items())
+                    if "|ext" not in a and "|ext" not in b and rule.rejects(a, b, depth)]
         for i in range(len(managers)):
             for j in range(i + 1, len(managers)):
                 hit, pairs = managers[i].in_collision_other(managers[j], return_names=True)

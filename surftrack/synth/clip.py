@@ -65,6 +65,10 @@ TISSUE_CLEARANCE_MM = 0.5
 MIN_TISSUE_COVERAGE = 0.995
 
 
+class ClipError(ValueError):
+    """A clip that cannot be made with these settings; the message says why and what to check."""
+
+
 @dataclass(frozen=True)
 class ClipConfig:
     """What a clip looks like, apart from the instrument and the seed (see the module docstring).
@@ -534,7 +538,7 @@ def _sample_scene(camera: PinholeCamera, renderer: Renderer, seed: int):
         if (res.instance > 0).mean() >= MIN_TISSUE_COVERAGE:
             return tissue, pose, tid
         renderer.remove(tid)
-    raise RuntimeError("could not place a tissue patch covering the image")
+    raise ClipError("could not place a tissue patch covering the image; check the clip's camera settings")
 
 
 def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = ClipConfig(), seed: int = 0,
@@ -589,7 +593,11 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
                 break
             reasons[why] = reasons.get(why, 0) + 1
         if tracks is None:
-            raise RuntimeError(f"no valid motion plan for seed {seed} in {MAX_ATTEMPTS} attempts (failures: {reasons})")
+            top = max(reasons, key=lambda k: reasons[k])
+            raise ClipError(f"{out}: no valid motion plan for {main.name} with seed {seed} in {MAX_ATTEMPTS} attempts "
+                            f"(failures: {', '.join(f'{k} {v}' for k, v in reasons.items())}); most often {top}: "
+                            f"check the instrument with `surftrack instruments {main.source or main.name} --check`, "
+                            f"or try another --seed")
         # Lights fixed for the clip (the static tissue layer stays cached); extra spots follow the shafts.
         lights, ambient = sample_lights(LightingCfg(), np.random.default_rng([seed, 3]),
                                         [tr.sample(n // 2) for tr in tracks])

@@ -319,6 +319,27 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
     return report
 
 
+_CAUSES = {
+    "part_collision": "the instrument's parts collide with each other in most poses; run `surftrack instruments "
+                      "YOUR.yaml --check` (joint frames, limits, contacts)",
+    "out_of_view": "the tool's tips leave the image in most poses; check the mesh units and the tip keypoints "
+                   "(`surftrack instruments YOUR.yaml --check`)",
+    "tissue_collision": "the instrument runs into the tissue; check the mesh units and sizes, or pose.tip_to_tissue_mm",
+    "geometry": "no trocar and aim fit the pose ranges; widen pose.shaft_to_axis_deg or pose.tip_to_tissue_mm",
+    "tissue_coverage": "the tissue does not cover the image; check the tissue settings (distance_mm, extent_mm)",
+    "low_visibility": "the instrument is hidden or too small to see; check the mesh units (a metre mesh read as mm "
+                      "is 1000 times too small) and rejection.min_visib_fract",
+}
+
+
+def likely_cause(rejections: dict[str, int]) -> str:
+    """What most often stopped scenes (the largest rejection count) and what to check, in words."""
+    if not any(rejections.values()):
+        return "no attempt was made"
+    top = max(rejections, key=lambda k: rejections[k])
+    return f"{top} ({_CAUSES.get(top, 'see the dataset card')})"
+
+
 def _report(stats: list[ImageStats], requested: int, todo: int, seconds: float) -> GenerationReport:
     rej: Counter = Counter()
     for s in stats:
