@@ -35,6 +35,9 @@ from surftrack.synth.sampling import (
 from surftrack.synth.tissue import TissueSource
 
 MAX_INSTRUMENTS = 2
+#: Placements of a second tool per scene attempt. Placements are cheap (no rendering); giving up the first
+#: tool for each failure of the second made two-tool scenes take 2-3x the attempts of one-tool scenes.
+LATER_TOOL_TRIES = 4
 REJECTIONS = ("geometry", "out_of_view", "tissue_collision", "part_collision", "tissue_coverage", "low_visibility")
 
 
@@ -102,7 +105,7 @@ class SceneGenerator:
         for attempt in range(1, cfg.rejection.max_attempts + 1):
             camera = sample_camera(cfg.image, cfg.camera, rng)
             tissue_pose = jitter_pose(base_pose, rng, cfg.tissue.jitter_mm, cfg.tissue.jitter_deg)
-            reason, samples = self._sample_instruments(rng, names, camera, tissue, tissue_pose)
+            reason, samples = self._sample_instruments(rng, names, camera, tissue, tissue_pose, rejections)
             if reason:
                 rejections[reason] += 1
                 continue
@@ -119,22 +122,38 @@ class SceneGenerator:
             return ImageStats(scene_id, im_id, True, attempt, dict(rejections), time.perf_counter() - t0)
         return ImageStats(scene_id, im_id, False, cfg.rejection.max_attempts, dict(rejections), time.perf_counter() - t0)
 
-    def _sample_instruments(self, rng, names, camera, tissue, tissue_pose) -> tuple[str | None, list[InstrumentSample]]:
-        cfg = self.cfg
+    def _sample_instruments(self, rng, names, camera, tissue, tissue_pose,
+                            rejections: Counter) -> tuple[str | None, list[InstrumentSample]]:
+        """Place the tools one after the other; a later tool that fails its own tests is placed again (up to
+        :data:`LATER_TOOL_TRIES` times, each failure counted in ``rejections``) before the attempt is given
+        up, so that a good first placement is not thrown away for the second tool's sake."""
         samples: list[InstrumentSample] = []
-        for name in names:
-            near = samples[0].target if samples else None
-            s = sample_instrument(self.instruments[name], cfg.pose, rng, camera, tissue, tissue_pose, near=near)
-            if s is None:
-                return "geometry", []
-            if not in_view(s, camera, cfg.rejection.margin_px, cfg.pose.min_depth_mm):
-                return "out_of_view", []
-            if self.tissue_checks[name].collides(s.poses, tissue, tissue_pose):
-                return "tissue_collision", []
+        for k, name in enumerate(names):
+            tries = 1 if k == 0 else LATER_TOOL_TRIES
+            for t in range(tries):
+                reason, s = self._place(name, rng, camera, tissue, tissue_pose, samples[0].target if samples else None)
+                if reason is None:
+                    break
+                if t < tries - 1:
+                    rejections[reason] += 1
+            if reason is not None:
+                return reason, []
             samples.append(s)
         if self.part_check.collisions(samples):
             return "part_collision", []
         return None, samples
+
+    def _place(self, name, rng, camera, tissue, tissue_pose, near) -> tuple[str | None, InstrumentSample | None]:
+        """One placement of tool ``name`` and its own tests: (None, sample) or (rejection reason, None)."""
+        cfg = self.cfg
+        s = sample_instrument(self.instruments[name], cfg.pose, rng, camera, tissue, tissue_pose, near=near)
+        if s is None:
+            return "geometry", None
+        if not in_view(s, camera, cfg.rejection.margin_px, cfg.pose.min_depth_mm):
+            return "out_of_view", None
+        if self.tissue_checks[name].collides(s.poses, tissue, tissue_pose):
+            return "tissue_collision", None
+        return None, s
 
     def _check_render(self, res, samples: list[InstrumentSample]) -> str | None:
         if (res.instance > 0).mean() < self.cfg.tissue.min_coverage:
