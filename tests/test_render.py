@@ -247,3 +247,17 @@ def test_removing_an_instance_frees_unshared_geometry():
     with pytest.raises(ValueError):
         r.render(cam, {b: se3(np.eye(3), [0, 0, 50.0])})
     r.release()
+
+
+def test_the_readme_rendering_example_runs():
+    """The README's "Rendering an instrument yourself" snippet, with the built-in LND for the user's YAML."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
+    scope: dict = {}
+    exec("\n".join(line[2:] for line in code.splitlines()).replace('"my_tool.yaml"', '"lnd"'), scope)
+    res = scope["res"]
+    assert res.rgb.shape == (512, 640, 3) and 0.01 < (res.instance > 0).mean() < 0.5
+    scope["renderer"].release()
