@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from surftrack.geometry import PinholeCamera, rotation_angle_deg
+from surftrack.geometry import PinholeCamera
 from surftrack.instruments import load_bop_models, load_instrument
 from surftrack.render import Renderer
 from surftrack.synth.bop_writer import decode_normals

@@ -214,7 +214,7 @@ def test_int8_export_is_small_and_close(tmp_path):
     assert blob["int8"] and all(k.startswith("net.") for k in blob["int8"])
     x, idx = torch.rand(2, 3, 64, 64), torch.tensor([0, 3])
     with torch.no_grad():
-        (ma, qa), (mb, qb) = model(x, idx), loaded(x, idx)
+        (_, qa), (_, qb) = model(x, idx), loaded(x, idx)
     assert float((qa - qb).norm() / qa.norm()) < 0.02
     pts = torch.rand(50, 3) - 0.5  # the SIREN fields are kept in fp16, not quantised
     with torch.no_grad():

@@ -18,7 +18,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from surftrack.geometry import rotation_angle_deg
 from surftrack.model import losses

@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
 from surftrack.pose.correspondence import CorrField
 from surftrack.pose.preset import Preset
