@@ -5,7 +5,7 @@
 Steps (each resumable: an existing output is reused):
 
 1. ``surftrack synth``: 400 LND images (seed 11), 2,000 (seed 12) and 2,000 more (seed 15) with the
-   default synthesis config (roll within +-30 deg of ``roll_zero: view``); 2,000 with ``roll_zero:
+   paper's synthesis config (``configs/synth/paper.yaml``: roll within +-30 deg of ``roll_zero: view``); 2,000 with ``roll_zero:
    across`` (seed 16), 2,000 with the roll anywhere in +-180 deg (seed 18) and 2,000 more of those
    (seed 20). Held out for evaluation: 100 images of each kind (seeds 13, 17 and 19).
 2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
@@ -39,11 +39,11 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def _synth(out: Path, images: int, seed: int, **pose) -> None:
-    """``images`` LND images with the default synthesis config, its ``pose`` settings replaced by ``pose``."""
+    """``images`` LND images with the paper's synthesis config, its ``pose`` settings replaced by ``pose``."""
     from surftrack.synth.config import load_synth_config
     from surftrack.synth.generate import generate_dataset
 
-    cfg = load_synth_config(overrides={"instruments": ["large_needle_driver"]})
+    cfg = load_synth_config("paper", overrides={"instruments": ["large_needle_driver"]})
     cfg = dataclasses.replace(cfg, pose=dataclasses.replace(cfg.pose, **pose)).validate()
     generate_dataset(out, cfg, images, seed=seed, workers=2, progress=True)
 

@@ -432,7 +432,8 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--images", type=int, default=100, help="total number of images (default: 100)")
     sy.add_argument("--seed", type=_seed, default=0)
     sy.add_argument("--workers", type=int, default=1, help="worker processes, each with its own GL context")
-    sy.add_argument("--config", help="synthesis YAML (default: configs/synth/default.yaml)")
+    sy.add_argument("--config", help="synthesis YAML, or 'paper' for the paper's ranges (default: configs/synth/"
+                                     "default.yaml, the instrument's whole reach)")
     sy.add_argument("--quiet", action="store_true", help="no progress bar")
     sy.set_defaults(func=_cmd_synth)
     sc = sub.add_parser("synth-clip", help="make a synthetic tracking clip: video, camera, ground truth, detections")

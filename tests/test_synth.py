@@ -10,11 +10,12 @@ import pytest
 import trimesh
 
 from surftrack.geometry import PinholeCamera
-from surftrack.instruments import load_bop_models, load_instrument
+from surftrack.instruments import JOINT_NAMES, load_bop_models, load_instrument
 from surftrack.render import Renderer
 from surftrack.synth.bop_writer import decode_normals
 from surftrack.synth.config import ConfigError, load_synth_config
 from surftrack.synth.generate import generate_dataset
+from surftrack.synth.sampling import joint_ranges, sample_joints
 
 W, H, N = 320, 256, 8
 SMALL = {
@@ -147,16 +148,34 @@ def test_no_collisions_and_rcm(dataset):
 def test_joint_angles_within_ranges(dataset):
     root, cfg, _ = dataset
     p = cfg.pose
+    assert p.joint_source == "limits"  # the default: each instrument's own reach
     for _, _, _, gts, _ in images(root):
         for gt in gts:
             j = gt["joints_deg"]
-            lim = load_instrument(gt["instrument"]).limits
-            assert p.roll_deg[0] - 1e-6 <= j["roll"] <= p.roll_deg[1] + 1e-6
-            assert p.pitch_deg[0] - 1e-6 <= abs(j["pitch"]) <= p.pitch_deg[1] + 1e-6
-            assert p.yaw_deg[0] - 1e-6 <= abs(j["yaw"]) <= p.yaw_deg[1] + 1e-6
-            lo, hi = lim.ranges["opening"]
-            assert np.degrees(lo) - 1e-6 <= j["opening"] <= np.degrees(hi) + 1e-6
+            for name, (lo, hi) in joint_ranges(load_instrument(gt["instrument"])).items():
+                assert np.degrees(lo) - 1e-6 <= j[name] <= np.degrees(hi) + 1e-6, name
             assert p.tip_to_tissue_mm[0] <= gt["tip_to_tissue_mm"] <= p.tip_to_tissue_mm[1]
+
+
+@pytest.mark.parametrize("name", ["lnd", "scissors", "permanent_cautery_spatula"])
+def test_joint_sampling_follows_the_instruments_limits_or_the_papers_ranges(name):
+    """The default samples each joint over the instrument's YAML limits and covers them; the paper preset
+    stays in its ranges (within the limits)."""
+    inst = load_instrument(name)
+    rng = np.random.default_rng(0)
+    reach = load_synth_config().pose
+    qs = np.array([[getattr(sample_joints(inst, reach, rng), n) for n in JOINT_NAMES] for _ in range(2000)])
+    for k, n in enumerate(JOINT_NAMES):
+        lo, hi = inst.limits.ranges.get(n, (0.0, 0.0))  # a joint without a limit (a spatula's opening) stays 0
+        assert lo - 1e-9 <= qs[:, k].min() and qs[:, k].max() <= hi + 1e-9, n
+        want = joint_ranges(inst)[n]
+        if want[1] > want[0]:  # the samples cover the range they are drawn from
+            assert qs[:, k].min() < want[0] + 0.02 * (want[1] - want[0]) and qs[:, k].max() > want[1] - 0.02 * (want[1] - want[0])
+    assert np.ptp(qs[:, 0]) > np.radians(350)  # roll: the full circle
+    paper = load_synth_config("paper").pose
+    assert paper.joint_source == "ranges"
+    qs = np.array([[getattr(sample_joints(inst, paper, rng), n) for n in JOINT_NAMES] for _ in range(500)])
+    assert np.degrees(np.abs(qs[:, 0])).max() <= 30 + 1e-6 and np.degrees(np.abs(qs[:, 1])).max() <= 60 + 1e-6
 
 
 def test_normals_face_the_camera(dataset):

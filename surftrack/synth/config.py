@@ -50,11 +50,13 @@ class TissueCfg:
 
 TISSUE_SOURCES = ("procedural", "mesh", "images")
 ROLL_ZEROS = ("view", "across")  # see surftrack.synth.sampling.roll_reference
+JOINT_SOURCES = ("ranges", "limits")  # see surftrack.synth.sampling.sample_joints
 MESH_UNITS = ("mm", "cm", "m")
 
 
 @dataclass(frozen=True)
 class PoseCfg:
+    joint_source: str = "ranges"  # 'ranges': the *_deg ranges below (the paper's); 'limits': the instrument's own
     target_radius: float = 0.3
     shaft_to_axis_deg: Range = (35.0, 75.0)
     tip_to_tissue_mm: Range = (30.0, 100.0)
@@ -120,6 +122,8 @@ class SynthConfig:
             (0.0 < self.rejection.min_visib_fract <= 1.0, "rejection.min_visib_fract must be in (0, 1]"),
             (self.pose.wrist_sign in ("random", "positive"), "pose.wrist_sign must be 'random' or 'positive'"),
             (self.pose.roll_zero in ROLL_ZEROS, f"pose.roll_zero must be one of {', '.join(ROLL_ZEROS)}"),
+            (self.pose.joint_source in JOINT_SOURCES,
+             f"pose.joint_source must be one of {', '.join(JOINT_SOURCES)}"),
             (self.output.rgb_format in ("jpg", "png"), "output.rgb_format must be 'jpg' or 'png'"),
             (self.output.images_per_scene > 0 and self.tissue.images_per_tissue > 0, "image counts must be > 0"),
             (self.output.images_per_scene % self.tissue.images_per_tissue == 0,
@@ -173,10 +177,12 @@ def _resolve_tissue_paths(data: dict, base: Path) -> None:
 
 
 def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> SynthConfig:
-    """Load a synthesis config (default: ``configs/synth/default.yaml``); ``overrides`` replace top-level keys."""
+    """Load a synthesis config: a YAML file, or the name of one in ``configs/synth`` (``default``, ``paper``;
+    default: ``default``); ``overrides`` replace top-level keys."""
     from surftrack.paths import configs_dir
 
-    p = Path(path) if path else configs_dir() / "synth" / "default.yaml"
+    named = configs_dir() / "synth" / f"{path or 'default'}.yaml"
+    p = named if not path or (not Path(path).suffix and named.is_file()) else Path(path)
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
