@@ -125,6 +125,9 @@ def _cmd_instruments(args: argparse.Namespace) -> int:
     registry = _registry(args)
     names = args.names or registry.names()
     insts = [registry.load(n) for n in names]
+    if args.export:
+        ids = export_bop_models(insts, args.export)
+        print(f"wrote {len(ids)} models to {args.export}")
     if args.figure:
         from PIL import Image
 
@@ -132,6 +135,8 @@ def _cmd_instruments(args: argparse.Namespace) -> int:
 
         if len(insts) != 1:
             raise CLIError(f"--figure draws one instrument; name one (got {len(insts)})")
+        if Path(args.figure).suffix.lower() not in (".png", ".jpg", ".jpeg"):
+            raise CLIError(f"--figure {args.figure}: give a .png or .jpg file")
         Image.fromarray(joint_frames_figure(insts[0])).save(args.figure)
         print(f"wrote {args.figure}")
         if not args.check:
@@ -154,9 +159,6 @@ def _cmd_instruments(args: argparse.Namespace) -> int:
                   f"(bbox diagonal {part.diameter_bbox_diagonal:6.2f})  watertight={part.mesh.is_watertight}")
         for w in size_warnings(inst):
             print(f"  warning: {w}")
-    if args.export:
-        ids = export_bop_models(insts, args.export)
-        print(f"wrote {len(ids)} models to {args.export}")
     return 0
 
 
@@ -245,6 +247,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from surftrack.pose.evaluate import evaluate, evaluate_seeds, markdown_table, seed_table, write_eval_outputs
     from surftrack.pose.preset import get_preset
 
+    if args.suite is not None:
+        return _eval_suite(args)
+    if args.data is None:
+        raise CLIError("eval needs --data DATASET (or --suite)")
+    args.seed = args.seed or [0]
     if args.max_images is not None and args.max_images <= 0:
         raise CLIError(f"--max-images must be positive, got {args.max_images}")
     if not 0.0 < args.occlusion_threshold <= 1.0:
@@ -278,6 +285,32 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table = seed_table(results)
         out.with_suffix(".seeds.md").write_text(table)  # the per-seed outputs made its folder
         print(f"\nADD-10 per solver seed:\n{table}wrote {out.with_suffix('.seeds.md')}")
+    return 0
+
+
+def _eval_suite(args: argparse.Namespace) -> int:
+    """``eval --suite``: make the suite's sets where missing, evaluate each, print and write one table."""
+    from surftrack.pose.preset import get_preset
+    from surftrack.pose.suite import evaluate_suite, load_suite, make_suite, suite_table
+
+    seeds = args.seed or [0, 1, 2]
+    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, seeds))}")
+    sets = load_suite(None if args.suite == "default" else args.suite)
+    registry = _registry(args)
+    folders = make_suite(sets, args.suite_dir, workers=2, progress=not args.quiet, instruments=registry)
+    preset = get_preset(args.preset)
+    if args.views is not None:
+        preset = preset.replace(views=_checked_views(args.views))
+    table = evaluate_suite(args.model, sets, folders, seeds, preset=preset, device=args.device,
+                           kinematic=args.kinematic, instruments=registry, progress=not args.quiet)
+    text = suite_table(table, sets)
+    out = Path(args.out).with_suffix(".suite.md")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(f"Model {args.model}, preset {preset.name}{', kinematic fit' if args.kinematic else ''}, "
+                   f"solver seeds {' '.join(map(str, seeds))}.\n\n{text}")
+    print(text, end="")
+    print(f"wrote {out}")
     return 0
 
 
@@ -463,7 +496,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr.set_defaults(func=_cmd_train)
     ev = sub.add_parser("eval", help="evaluate a checkpoint on a BOP split (RE, TE, ADD-10, AUC; paper table, BOP CSV)")
     ev.add_argument("--model", required=True, help="checkpoint file (from `surftrack train`)")
-    ev.add_argument("--data", required=True, help="BOP dataset folder")
+    ev.add_argument("--data", help="BOP dataset folder")
+    ev.add_argument("--suite", nargs="?", const="default", metavar="YAML",
+                    help="evaluate on the fixed held-out suite instead (default configs/eval/suite.yaml): its sets are "
+                         "made in --suite-dir on first use; one table per part and set, mean of solver seeds 0-2")
+    ev.add_argument("--suite-dir", default="data/suite", help="where the suite's sets live (default: data/suite)")
     ev.add_argument("--split", default="test", help="split folder to evaluate (default: test)")
     ev.add_argument("--out", default="eval.json", help="results JSON; .md, .bop.csv and .png go next to it "
                     "(default: eval.json)")
@@ -471,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "accurate; thorough: accurate on five crop views per box, about 4x its time)")
     ev.add_argument("--views", type=int, metavar="N", help="crop views per box, 1-9 (default: the preset's)")
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
-    ev.add_argument("--seed", type=int, nargs="+", default=[0], metavar="N",
+    ev.add_argument("--seed", type=int, nargs="+", metavar="N",
                     help="random seed(s) of the pose solver (surface samples, hypotheses; default 0). On ~100 "
                          "images the figures move by a few points with it: give several (--seed 0 1 2) to get "
                          "one evaluation each (<out stem>.seedN.*; one network forward for all) and a table of "
@@ -558,6 +595,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.data import DatasetError
     from surftrack.instruments import InstrumentError
     from surftrack.render import RenderError
+    from surftrack.pose.suite import SuiteError
     from surftrack.synth.clip import ClipError
     from surftrack.synth.config import ConfigError
 
@@ -566,7 +604,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from surftrack.track import InputError, TrackConfigError
 
-    errors = (CLIError, InstrumentError, RenderError, ConfigError, ClipError, TrainConfigError, CheckpointError,
+    errors = (CLIError, InstrumentError, RenderError, ConfigError, ClipError, SuiteError, TrainConfigError, CheckpointError,
               DatasetError, InputError, TrackConfigError, OSError)
 
     parser = build_parser()

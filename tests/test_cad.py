@@ -11,7 +11,7 @@ import trimesh
 from mcap.reader import make_reader
 
 from surftrack.cli import main
-from surftrack.instruments import InstrumentError, InstrumentRegistry, load_instrument_file
+from surftrack.instruments import InstrumentError, InstrumentRegistry, JointState, fit_configuration, load_instrument_file
 from surftrack.instruments.cad import read_mesh_file
 from surftrack.instruments.check import check_instrument, size_warnings
 from surftrack.instruments.contacts import ContactRule, contact_depths
@@ -96,8 +96,6 @@ def test_ngon_ply_is_read_where_trimesh_fails(tmp_path):
     corners = _box_corners((0, 0, 0), (1, 1, 1))
     polys = _QUADS[:5] + [[3, 0, 4], [3, 4, 7]]  # quads and triangles mixed, as Blender writes them
     write_ngon_ply(tmp_path / "b.ply", corners, polys, binary=True)
-    with pytest.raises(Exception):  # why the reader is not trimesh's
-        trimesh.load(tmp_path / "b.ply", force="mesh")
     mesh = read_mesh_file(tmp_path / "b.ply")
     assert len(mesh.faces) == 12 and trimesh.Trimesh(mesh.vertices, mesh.faces).is_watertight
     assert trimesh.Trimesh(mesh.vertices, mesh.faces).volume == pytest.approx(1.0)
@@ -144,9 +142,19 @@ def test_mesh_transform_forms_agree_and_joint_rotation_composes(tmp_path):
     quat = tool(", quat_xyzw: [0, 0, 0.7071067811865476, 0.7071067811865476], scale: 2").parts["shaft"].mesh.bounds
     assert rpy == pytest.approx(deg) and rpy == pytest.approx(quat)
     assert rpy == pytest.approx(np.array([[5 - 4, 0, 0], [5, 2, 6]]))  # scaled, turned +x -> +y, then moved
+    # three angles: URDF's fixed-axis roll (x), pitch (y), yaw (z), R = Rz @ Ry @ Rx; scale before rotation
+    a = [0.3, -0.7, 1.1]
+    R = (trimesh.transformations.rotation_matrix(a[2], [0, 0, 1]) @ trimesh.transformations.rotation_matrix(a[1], [0, 1, 0])
+         @ trimesh.transformations.rotation_matrix(a[0], [1, 0, 0]))
+    got = tool(f", rpy: {a}, scale: [1, 2, 3]").parts["shaft"].mesh.bounds
+    corners = trimesh.creation.box(bounds=[[0, 0, 0], [1, 4, 9]]).vertices
+    want = corners @ R[:3, :3].T + [5, 0, 0]
+    assert got == pytest.approx(np.array([want.min(0), want.max(0)]))
+    T = tool("", f", rpy: {a}").forward(np.eye(4), JointState(yaw=0.4))["jaw"]
+    assert T == pytest.approx(trimesh.transformations.translation_matrix([0, 0, 9]) @ R
+                              @ trimesh.transformations.rotation_matrix(0.4, [0, 0, 1]))
     with pytest.raises(InstrumentError, match="give one of rpy, rpy_deg, quat_xyzw"):
         tool(", rpy: [0, 0, 1], quat_xyzw: [0, 0, 0, 1]")
-    from surftrack.instruments import JointState
     t = tool("", ", rpy_deg: [90, 0, 0]")
     T = t.forward(np.eye(4), JointState(yaw=0.3))["jaw"]
     Rx = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])
@@ -154,21 +162,19 @@ def test_mesh_transform_forms_agree_and_joint_rotation_composes(tmp_path):
     assert T == pytest.approx(trimesh.transformations.translation_matrix([0, 0, 9]) @ Rx @ Rz)
 
 
-@pytest.mark.parametrize("where, yaml_text", [
-    ("top", "rotation: 1\n"),
-    ("part", "    rotation: [0, 0, 0]\n"),
-    ("mesh", None),
-    ("joint", None),
-    ("material", None),
-])
-def test_unknown_keys_are_errors_naming_key_and_file(tmp_path, capsys, where, yaml_text):
+@pytest.mark.parametrize("where", ["top", "part", "mesh", "joint", "material", "limits", "attachment", "list"])
+def test_unknown_keys_are_errors_naming_key_and_file(tmp_path, capsys, where):
     trimesh.creation.box().export(tmp_path / "b.stl")
     body = ("name: t\nparts:\n  - name: shaft\n    mesh: {file: b.stl, units: mm}\n"
             "    joint: {axis: [0, 0, 1]}\n    material: {color: [1, 1, 1]}\n")
     body = {"top": body + "rotation: 1\n", "part": body + "    rotation: [0, 0, 0]\n",
             "mesh": body.replace("units: mm}", "units: mm, rotation: [0, 0, 0]}"),
             "joint": body.replace("axis: [0, 0, 1]}", "axis: [0, 0, 1], scale: 2}"),
-            "material": body.replace("color:", "colour:")}[where]
+            "material": body.replace("color:", "colour:"),
+            "limits": body + "joint_limits_deg: {roll: [-90, 90], rotation: [0, 1]}\n",
+            "attachment": body + "    attachments: [{file: b.stl, units: mm, rotation: 1}]\n",
+            "list": body.replace("mesh: {file: b.stl, units: mm}", "mesh: [{file: b.stl, units: mm}, "
+                                 "{file: b.stl, units: mm, rotation: 1}]")}[where]
     (tmp_path / "t.yaml").write_text(body)
     with pytest.raises(InstrumentError, match=r"t\.yaml.*unknown key '(rotation|scale|colour)'"):
         load_instrument_file(tmp_path / "t.yaml")
@@ -201,8 +207,11 @@ def test_touching_cad_parts_pass_the_collision_rule_and_check_reports_them(cad_y
 def test_frames_figure_draws_the_cad_tool(cad_yaml, tmp_path):
     assert main(["instruments", str(cad_yaml), "--figure", str(tmp_path / "f.png")]) == 0
     from PIL import Image
-    img = np.asarray(Image.open(tmp_path / "f.png"))
-    assert img.shape == (480, 1280, 3) and (img[..., 0] > 200).any()  # the drawn x axes
+    img = np.asarray(Image.open(tmp_path / "f.png")).astype(int)
+    assert img.shape == (480, 1280, 3)
+    joint_axes = (np.abs(img - [255, 220, 0]).max(axis=-1) < 40).sum()       # the yellow joint axes and labels
+    x_axes = ((img[..., 0] > 180) & (img[..., 1] < 90) & (img[..., 2] < 90)).sum()  # the red x axes
+    assert joint_axes > 200 and x_axes > 50
 
 
 def test_cad_geometry_survives_the_dataset_round_trip(cad_yaml, tmp_path):
@@ -283,3 +292,57 @@ def test_a_model_trained_on_cad_tracks_with_joint_angles(cad_yaml, tmp_path, cap
     with open(tmp_path / "t.mcap", "rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
     assert "/instruments/cad_tool.0/joints" in topics
+
+
+def test_contact_rule_rejects_deep_linked_and_any_unlinked_contact(cad_yaml):
+    tool = load_instrument_file(cad_yaml)
+    rule = ContactRule.of(tool)
+    assert rule.rejects("jaw_left", "shaft", 0.0)               # not linked, not touching at rest
+    assert not rule.rejects("jaw_left", "wrist", 5.0)            # touching at rest: not tested
+    lnd = __import__("surftrack").instruments.load_instrument("lnd")
+    lnd_rule = ContactRule.of(lnd)
+    assert not lnd_rule.at_rest and ("shaft", "wrist") in lnd_rule.linked
+    assert not lnd_rule.rejects("shaft", "wrist", 0.2) and lnd_rule.rejects("shaft", "wrist", 0.5)
+    # jaws clamped into each other (a negative opening) are rejected by the synthesis check
+    poses = lnd.forward(np.eye(4), JointState.from_degrees(opening=-20))
+    assert ("0|jaw_left", "0|jaw_right") in PartCollision([lnd]).collisions_of([(lnd, poses)])
+
+
+def test_fixed_joint_rotations_reach_the_instrument_fit(tmp_path):
+    """A URDF-like chain (joint frames turned by rpy) is fitted back to its joints from its part poses."""
+    yaml_text = (make_cad_tool(tmp_path / "t").read_text()
+                 .replace("joint: {axis: [1, 0, 0], angle: {pitch: 1.0}}",
+                          "joint: {rpy_deg: [-90, -90, 0], axis: [0, 0, 1], angle: {pitch: 1.0}}")
+                 .replace("joint: {origin: [0, 0, 9], axis: [0, 1, 0]",
+                          "joint: {origin: [0, 0, 9], rpy_deg: [0, -90, -90], axis: [0, 0, 1]"))
+    (tmp_path / "t" / "rot.yaml").write_text(yaml_text.replace("name: cad_tool", "name: rot_tool"))
+    tool = load_instrument_file(tmp_path / "t" / "rot.yaml")
+    q = JointState.from_degrees(roll=20, pitch=25, yaw=-30, opening=35)
+    from surftrack.instruments import rcm_base_pose
+    poses = tool.forward(rcm_base_pose(np.array([-60.0, -40.0, 20.0]), np.array([5.0, -3.0, 90.0])), q)
+    from surftrack.instruments.fit import _pair_relations  # the closed-form start: exact for exact poses
+    A, b = _pair_relations(tool, poses)
+    assert len(A) == 3 and A @ np.array([q.roll, q.pitch, q.yaw, q.opening]) == pytest.approx(b, abs=1e-9)
+    fit = fit_configuration(tool, {p: (T[:3, :3], T[:3, 3]) for p, T in poses.items()})
+    assert np.degrees([getattr(fit.joints, n) - getattr(q, n) for n in ("roll", "pitch", "yaw", "opening")]) == \
+        pytest.approx([0, 0, 0, 0], abs=0.05)
+
+
+def test_reach_takes_one_turn_of_roll_and_closed_to_open_jaws(tmp_path):
+    trimesh.creation.box().export(tmp_path / "b.stl")
+    (tmp_path / "t.yaml").write_text(
+        "name: t\njoint_limits_deg: {roll: [0, 400], opening: [-20, 60]}\nparts:\n"
+        "  - name: shaft\n    mesh: {file: b.stl, units: mm}\n    joint: {angle: {roll: 1.0}}\n")
+    reach = load_instrument_file(tmp_path / "t.yaml").reach()
+    assert np.degrees(reach["roll"]) == pytest.approx([0, 360]) and np.degrees(reach["opening"]) == pytest.approx([0, 60])
+    assert reach["pitch"] == (0.0, 0.0)
+
+
+def test_a_one_part_tool_gets_a_figure_and_a_warning_for_an_unlimited_joint(tmp_path, capsys):
+    trimesh.creation.box(bounds=[[-1, -1, -20], [1, 1, 5]]).export(tmp_path / "b.stl")
+    (tmp_path / "t.yaml").write_text("name: stick\nparts:\n  - name: shaft\n    mesh: {file: b.stl, units: mm}\n"
+                                     "    joint: {angle: {roll: 1.0}}\n")
+    assert main(["instruments", str(tmp_path / "t.yaml"), "--figure", str(tmp_path / "f.png"), "--check"]) == 1
+    out = capsys.readouterr().out
+    assert "joint 'roll' turns a part but has no limit" in out and (tmp_path / "f.png").is_file()
+    assert main(["instruments", str(tmp_path / "t.yaml"), "--figure", str(tmp_path / "f")]) == 2

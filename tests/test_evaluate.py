@@ -315,3 +315,39 @@ def test_kinematic_evaluation_fixes_the_shaft_roll(tiny):
     assert other["kinematic_instruments"] == [] and "kinematic fit" not in markdown_table(other)
     assert any("differ from those of" in w and "per-part poses" in w for w in other["warnings"])
     assert other["parts"]["large_needle_driver shaft"]["all"]["re_median"] == pytest.approx(50.0, abs=0.01)
+
+
+def test_the_held_out_suite_is_made_once_and_evaluated_as_one_table(tiny_ckpt, tmp_path, capsys):
+    """`surftrack eval --suite`: each set made with its seed and overrides, one row per set with a column per
+    part, the mean over solver seeds; a second run reuses the sets; a bad suite file is one line, exit 2."""
+    from surftrack.cli import main
+    from surftrack.pose.suite import load_suite, set_config
+
+    small = "{image: {width: 320, height: 256}, tissue: {images_per_tissue: 3, spacing_mm: 4.0, texel_mm: 1.0}, " \
+            "output: {images_per_scene: 3, rgb_format: png}"
+    (tmp_path / "suite.yaml").write_text(f"""images: 3
+sets:
+  paper: {{config: paper, seed: 13, overrides: {small}}}, about: narrow}}
+  occluded: {{config: default, seed: 4, overrides: {small}, two_instruments_prob: 1.0}}}}
+""")
+    sets = load_suite(tmp_path / "suite.yaml")
+    assert [s.name for s in sets] == ["paper", "occluded"]
+    assert set_config(sets[0]).pose.joint_source == "ranges" and set_config(sets[1]).pose.joint_source == "limits"
+    assert set_config(sets[1]).two_instruments_prob == 1.0 and set_config(sets[1]).image.width == 320
+    args = ["eval", "--suite", str(tmp_path / "suite.yaml"), "--suite-dir", str(tmp_path / "sets"),
+            "--model", str(tiny_ckpt), "--preset", "fast", "--seed", "0", "1", "--out", str(tmp_path / "e.json"),
+            "--quiet"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| paper") or line.startswith("| occluded")]
+    assert len(rows) == 2 and "| shaft | wrist | jaw_left | jaw_right | all parts |" in out
+    assert (tmp_path / "e.suite.md").is_file()
+    rgb = sorted((tmp_path / "sets" / "paper").rglob("rgb/*.png"))
+    made = [p.stat().st_mtime_ns for p in rgb]
+    assert len(rgb) == 3 and main(args) == 0  # the set is there: its images are not made again
+    assert [p.stat().st_mtime_ns for p in rgb] == made
+    capsys.readouterr()
+    (tmp_path / "bad.yaml").write_text("sets: {a: {seed: 1, sed: 2}}\n")
+    assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "bad.yaml" in err and "sed" in err

@@ -15,7 +15,7 @@ from surftrack.render import Renderer
 from surftrack.synth.bop_writer import decode_normals
 from surftrack.synth.config import ConfigError, load_synth_config
 from surftrack.synth.generate import generate_dataset
-from surftrack.synth.sampling import joint_ranges, sample_joints
+from surftrack.synth.sampling import sample_joints
 
 W, H, N = 320, 256, 8
 SMALL = {
@@ -152,7 +152,7 @@ def test_joint_angles_within_ranges(dataset):
     for _, _, _, gts, _ in images(root):
         for gt in gts:
             j = gt["joints_deg"]
-            for name, (lo, hi) in joint_ranges(load_instrument(gt["instrument"])).items():
+            for name, (lo, hi) in load_instrument(gt["instrument"]).reach().items():
                 assert np.degrees(lo) - 1e-6 <= j[name] <= np.degrees(hi) + 1e-6, name
             assert p.tip_to_tissue_mm[0] <= gt["tip_to_tissue_mm"] <= p.tip_to_tissue_mm[1]
 
@@ -168,7 +168,7 @@ def test_joint_sampling_follows_the_instruments_limits_or_the_papers_ranges(name
     for k, n in enumerate(JOINT_NAMES):
         lo, hi = inst.limits.ranges.get(n, (0.0, 0.0))  # a joint without a limit (a spatula's opening) stays 0
         assert lo - 1e-9 <= qs[:, k].min() and qs[:, k].max() <= hi + 1e-9, n
-        want = joint_ranges(inst)[n]
+        want = inst.reach()[n]
         if want[1] > want[0]:  # the samples cover the range they are drawn from
             assert qs[:, k].min() < want[0] + 0.02 * (want[1] - want[0]) and qs[:, k].max() > want[1] - 0.02 * (want[1] - want[0])
     assert np.ptp(qs[:, 0]) > np.radians(350)  # roll: the full circle

@@ -2,8 +2,8 @@
 
 Per part: size, watertightness, keypoints (given or derived). Per pair of parts: contact at the rest
 configuration (then not tested), the rule that applies (:mod:`surftrack.instruments.contacts`) and how
-often random joint states within the limits collide under it, which predicts synthesis's
-``part_collision`` rejections.
+often random joint states over its reach (:meth:`Instrument.reach`, what synthesis draws from) collide
+under it, which predicts synthesis's ``part_collision`` rejections.
 """
 
 from __future__ import annotations
@@ -42,8 +42,13 @@ class InstrumentCheck:
 
 
 def size_warnings(instrument: Instrument) -> list[str]:
-    """One warning per part longer than :data:`LONG_PART_MM` (a whole shaft tube taken as a part)."""
+    """One warning per part longer than :data:`LONG_PART_MM` (a whole shaft tube taken as a part) and per
+    joint that turns a part but has no limit (it is then held at 0 in synthesis)."""
     out = []
+    used = {k for j in instrument.chain.joints.values() for k, c in j.coefficients.items() if c}
+    for name in sorted(used - set(instrument.limits.ranges)):
+        out.append(f"{instrument.source or instrument.name}: joint {name!r} turns a part but has no limit in "
+                   f"joint_limits_deg: synthesis holds it at 0")
     for name, part in instrument.parts.items():
         length = float(part.mesh.extents.max())
         if length > LONG_PART_MM:
@@ -55,10 +60,10 @@ def size_warnings(instrument: Instrument) -> list[str]:
 
 
 def random_joint_states(instrument: Instrument, count: int, seed: int = 0) -> list[JointState]:
-    """``count`` joint states uniform within the limits (+-180 deg for a joint without a limit)."""
+    """``count`` joint states uniform over the instrument's reach (what synthesis draws from)."""
     rng = np.random.default_rng(seed)
-    ranges = [instrument.limits.ranges.get(n, (-np.pi, np.pi)) for n in JOINT_NAMES]
-    return [JointState(*(float(rng.uniform(lo, hi)) for lo, hi in ranges)) for _ in range(count)]
+    reach = instrument.reach()
+    return [JointState(*(float(rng.uniform(*reach[n])) for n in JOINT_NAMES)) for _ in range(count)]
 
 
 def check_instrument(instrument: Instrument, samples: int = 200, seed: int = 0) -> InstrumentCheck:
@@ -87,7 +92,7 @@ def check_instrument(instrument: Instrument, samples: int = 200, seed: int = 0) 
         for (a, b), depth in contact_depths(meshes, instrument.forward(np.eye(4), q)).items():
             deepest[(a, b)] = max(deepest[(a, b)], depth)
             hits[(a, b)] += rule.rejects(a, b, depth)
-    out.lines.append(f"  pairs of parts ({samples} random joint states within the limits):")
+    out.lines.append(f"  pairs of parts ({samples} random joint states over the instrument's reach):")
     for a, b in pairs:
         rep = PairReport((a, b), (a, b) in rule.linked, rule.at_rest.get((a, b)), hits[(a, b)] / samples,
                          deepest[(a, b)])

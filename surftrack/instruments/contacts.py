@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from surftrack.instruments.kinematics import JointState
 from surftrack.instruments.library import Instrument
 
 #: Penetration allowed between a part and the part it hangs from (mm): CAD pins sit in their bores with no
@@ -47,11 +46,6 @@ def depths_of(manager: trimesh.collision.CollisionManager) -> dict[Pair, float]:
     return out
 
 
-def rest_configuration(instrument: Instrument) -> JointState:
-    """All joints zero, clipped to the instrument's limits."""
-    return instrument.limits.clip(JointState())
-
-
 @dataclass(frozen=True)
 class ContactRule:
     """The contacts between one instrument's parts that reject a pose (see the module docstring)."""
@@ -62,7 +56,7 @@ class ContactRule:
 
     @classmethod
     def of(cls, instrument: Instrument, tolerance_mm: float = LINKED_TOLERANCE_MM) -> ContactRule:
-        poses = instrument.forward(np.eye(4), rest_configuration(instrument))
+        poses = instrument.forward(np.eye(4), instrument.rest)
         at_rest = contact_depths({n: p.mesh for n, p in instrument.parts.items()}, poses)
         linked = frozenset(_pair(n, j.parent) for n, j in instrument.chain.joints.items() if j.parent is not None)
         return cls(at_rest, linked, tolerance_mm)

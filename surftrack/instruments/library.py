@@ -66,6 +66,25 @@ class Instrument:
     def part_names(self) -> tuple[str, ...]:
         return self.chain.order
 
+    def reach(self) -> dict[str, tuple[float, float]]:
+        """Where each joint moves (radians), what synthesis draws from and ``instruments --check`` tries:
+        its limits; the roll within one turn (it is periodic; centred on 0 where the limits allow); the
+        opening from closed (0: a negative opening clamps the jaws into each other); a joint without a
+        limit held at 0."""
+        out = {n: self.limits.ranges.get(n, (0.0, 0.0)) for n in JOINT_NAMES}
+        lo, hi = out["roll"]
+        if hi - lo >= 2 * np.pi:
+            centre = float(np.clip(0.0, lo + np.pi, hi - np.pi))
+            out["roll"] = (centre - np.pi, centre + np.pi)
+        lo, hi = out["opening"]
+        out["opening"] = (min(max(lo, 0.0), hi), hi)
+        return out
+
+    @property
+    def rest(self) -> JointState:
+        """The rest configuration: all joints zero, clipped to the limits."""
+        return self.limits.clip(JointState())
+
     def forward(self, base_pose: np.ndarray, q: JointState) -> dict[str, np.ndarray]:
         """Pose (part-to-camera, 4x4) of every part for the base (zero-roll shaft frame) pose."""
         return self.chain.forward(base_pose, q)
@@ -109,7 +128,8 @@ def _load_mesh(spec: object, base: Path, where: str) -> tuple[trimesh.Trimesh, d
             raise InstrumentError(f"{where}: an empty list of meshes")
         loaded = [_load_mesh(s, base, f"{where} #{k}") for k, s in enumerate(spec)]
         rest = [cut for _, _, cut in loaded if cut is not None]
-        return (finish(trimesh.util.concatenate([m for m, _, _ in loaded])), {},
+        kps = {k: v for _, item_kps, _ in loaded for k, v in item_kps.items()}
+        return (finish(trimesh.util.concatenate([m for m, _, _ in loaded])), kps,
                 trimesh.util.concatenate(rest) if rest else None)
     if isinstance(spec, Mapping) and "builder" in spec:
         params = {k: v for k, v in spec.items() if k != "builder"}
@@ -121,9 +141,10 @@ def _load_mesh(spec: object, base: Path, where: str) -> tuple[trimesh.Trimesh, d
     spec = _known_keys(spec, FILE_MESH_KEYS, where)
     if "file" not in spec:
         raise InstrumentError(f"{where}: a mesh needs either 'builder' or 'file' (+ 'units')")
-    path = (base / str(spec["file"])).expanduser()
+    path = Path(str(spec["file"])).expanduser()
+    path = path if path.is_absolute() else base / path
     units = spec.get("units")
-    if units not in UNITS_TO_MM:
+    if not isinstance(units, str) or units not in UNITS_TO_MM:
         raise InstrumentError(f"{where}: mesh 'units' must be one of {sorted(UNITS_TO_MM)}, got {units!r}")
     if not path.is_file():
         raise InstrumentError(f"{where}: mesh file {path} does not exist")
@@ -209,7 +230,10 @@ def load_instrument_file(path: str | Path) -> Instrument:
         except (ValueError, TypeError) as e:
             raise InstrumentError(f"{where}: {e}") from None
         for k, a in enumerate(p.get("attachments") or []):
-            amesh, _, _ = _load_mesh(a, path.parent, f"{where} attachment #{k}")
+            amesh, _, cut = _load_mesh(a, path.parent, f"{where} attachment #{k}")
+            if cut is not None:
+                raise InstrumentError(f"{where} attachment #{k}: shaft_length_mm cuts a tracked part's mesh; an "
+                                      f"attachment is rendered whole")
             attachments.append(Attachment(name, amesh))
     try:
         chain = KinematicChain(joints)
@@ -227,7 +251,7 @@ def load_instrument_file(path: str | Path) -> Instrument:
 def tool_axis_in_part(instrument: Instrument, part: str) -> np.ndarray:
     """Unit direction (3,) of the tool's axis (the shaft's +z, towards the tip) in ``part``'s frame at the
     rest configuration (all joints zero)."""
-    pose = instrument.chain.forward(np.eye(4), JointState())[part]
+    pose = instrument.chain.forward(np.eye(4), instrument.rest)[part]
     return pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
 

@@ -45,9 +45,10 @@ def joint_frames_figure(instrument: Instrument, bent: JointState | None = None, 
                         height: int = 480, hfov_deg: float = 40.0) -> np.ndarray:
     """RGB image (height, 2 * width, 3) uint8: the rest configuration and ``bent`` (default: 30 deg of
     pitch and yaw, jaws open 40 deg, within the limits) side by side, frames and joint axes drawn."""
-    rest = instrument.limits.clip(JointState())
+    rest = instrument.rest
     bent = instrument.limits.clip(bent or JointState.from_degrees(pitch=30.0, yaw=30.0, opening=40.0))
-    size = max(p.diameter_bbox_diagonal for n, p in instrument.parts.items() if instrument.chain.joints[n].parent)
+    distal = [p.diameter_bbox_diagonal for n, p in instrument.parts.items() if instrument.chain.joints[n].parent]
+    size = max(distal) if distal else next(iter(instrument.parts.values())).diameter_bbox_diagonal
     distance = max(60.0, 4.0 * size)
     camera = PinholeCamera.from_fov(width, height, hfov_deg)
     renderer = Renderer(width, height)

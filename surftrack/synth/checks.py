@@ -79,12 +79,14 @@ class PartCollision:
             managers.append(m)
         out = []
         for slot, (m, (inst, _)) in enumerate(zip(managers, posed)):
-            hit = m.in_collision_internal()
-            if not hit:
-                continue
+            hit, pairs = m.in_collision_internal(return_names=True)
             rule = self.rules[inst.name]
-            out += [(f"{slot}|{a}", f"{slot}|{b}") for (a, b), depth in sorted(depths_of(m).items())
-                    if "|ext" not in a and "|ext" not in b and rule.rejects(a, b, depth)]
+            pairs = sorted(p for p in pairs if "|ext" not in p[0] + p[1] and p not in rule.at_rest)
+            if not hit or not pairs:
+                continue
+            # penetration depths (all contacts of the manager, slower) only where they decide
+            depths = depths_of(m) if any(p in rule.linked for p in pairs) else {}
+            out += [(f"{slot}|{a}", f"{slot}|{b}") for a, b in pairs if rule.rejects(a, b, depths.get((a, b), 0.0))]
         for i in range(len(managers)):
             for j in range(i + 1, len(managers)):
                 hit, pairs = managers[i].in_collision_other(managers[j], return_names=True)

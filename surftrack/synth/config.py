@@ -183,6 +183,9 @@ def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] 
 
     named = configs_dir() / "synth" / f"{path or 'default'}.yaml"
     p = named if not path or (not Path(path).suffix and named.is_file()) else Path(path)
+    if not p.is_file() and not Path(path or "").suffix:
+        names = sorted(f.stem for f in (configs_dir() / "synth").glob("*.yaml"))
+        raise ConfigError(f"{path}: no such synthesis config (a YAML file, or one of {', '.join(names)})")
     try:
         data = yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:

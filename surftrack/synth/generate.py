@@ -131,7 +131,7 @@ class SceneGenerator:
         for k, name in enumerate(names):
             tries = 1 if k == 0 else LATER_TOOL_TRIES
             for t in range(tries):
-                reason, s = self._place(name, rng, camera, tissue, tissue_pose, samples[0].target if samples else None)
+                reason, s = self._place(name, rng, camera, tissue, tissue_pose, samples)
                 if reason is None:
                     break
                 if t < tries - 1:
@@ -139,13 +139,14 @@ class SceneGenerator:
             if reason is not None:
                 return reason, []
             samples.append(s)
-        if self.part_check.collisions(samples):
-            return "part_collision", []
         return None, samples
 
-    def _place(self, name, rng, camera, tissue, tissue_pose, near) -> tuple[str | None, InstrumentSample | None]:
-        """One placement of tool ``name`` and its own tests: (None, sample) or (rejection reason, None)."""
+    def _place(self, name, rng, camera, tissue, tissue_pose,
+               placed: list[InstrumentSample]) -> tuple[str | None, InstrumentSample | None]:
+        """One placement of tool ``name`` (aimed near the first of ``placed``, the tools already there) and
+        its tests: (None, sample) or (rejection reason, None)."""
         cfg = self.cfg
+        near = placed[0].target if placed else None
         s = sample_instrument(self.instruments[name], cfg.pose, rng, camera, tissue, tissue_pose, near=near)
         if s is None:
             return "geometry", None
@@ -153,6 +154,8 @@ class SceneGenerator:
             return "out_of_view", None
         if self.tissue_checks[name].collides(s.poses, tissue, tissue_pose):
             return "tissue_collision", None
+        if self.part_check.collisions(placed + [s]):  # its own parts, and the tools placed before it
+            return "part_collision", None
         return None, s
 
     def _check_render(self, res, samples: list[InstrumentSample]) -> str | None:

@@ -112,25 +112,12 @@ def roll_reference(cfg: PoseCfg, shaft: np.ndarray) -> np.ndarray | None:
     return across if np.linalg.norm(across) > 1e-6 else None
 
 
-def joint_ranges(instrument: Instrument) -> dict[str, tuple[float, float]]:
-    """Where ``joint_source: limits`` samples each joint (radians): the instrument's limits, the roll within
-    one turn (it is periodic) and the opening from 0 (a negative opening clamps the jaws into each other,
-    which the collision test rejects)."""
-    lim = instrument.limits.ranges
-    roll = lim.get("roll", (-np.pi, np.pi))
-    out = {"roll": (max(roll[0], -np.pi), min(roll[1], np.pi)) if roll[1] - roll[0] >= 2 * np.pi else roll}
-    out["pitch"] = lim.get("pitch", (0.0, 0.0))
-    out["yaw"] = lim.get("yaw", (0.0, 0.0))
-    lo, hi = lim.get("opening", (0.0, 0.0))
-    out["opening"] = (min(max(lo, 0.0), hi), hi)
-    return out
-
-
 def sample_joints(instrument: Instrument, cfg: PoseCfg, rng: np.random.Generator) -> JointState:
-    """Joint values: with ``cfg.joint_source == 'limits'`` uniform over :func:`joint_ranges` (the instrument's
-    whole reach); with ``'ranges'`` from the configured ranges (the paper's), clipped to the limits."""
+    """Joint values: with ``cfg.joint_source == 'limits'`` uniform over the instrument's whole reach
+    (:meth:`~surftrack.instruments.Instrument.reach`); with ``'ranges'`` from the configured ranges (the
+    paper's), clipped to the limits."""
     if cfg.joint_source == "limits":
-        return JointState(**{n: float(rng.uniform(lo, hi)) for n, (lo, hi) in joint_ranges(instrument).items()})
+        return JointState(**{n: float(rng.uniform(lo, hi)) for n, (lo, hi) in instrument.reach().items()})
 
     def wrist(r: tuple[float, float]) -> float:
         a = uniform(rng, r)
