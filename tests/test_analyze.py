@@ -108,3 +108,21 @@ def test_empty_log(tmp_path):
     assert s["parts"] == {} and s["instruments"] == {}
     assert "no part poses" in format_analysis(s)
     assert plot_analysis(s, tmp_path / "empty.png").is_file()
+
+
+def test_tool_tip_motion_skips_frames_without_a_fit(tmp_path):
+    """The tool tip is logged only on frames with a fit: a step across missing frames is not a path."""
+    path = tmp_path / "tip.mcap"
+    v = np.array([0.0, 30.0, 40.0])  # 50 mm/s
+    with TrackWriter(path) as w:
+        for i in range(N):
+            if i in (8, 9):
+                continue  # no fit: no joints, no tip
+            t = i / FPS
+            w.joint_states(t, "lnd.0", ["roll"], [0.0])
+            w.tool_tip(t, "lnd.0", np.eye(3), np.array([0.0, 0.0, 60.0]) + v * t + (100.0 if i >= 10 else 0.0))
+    tip = analyze_mcap(path)["instruments"]["lnd.0"]["tool_tip"]
+    assert tip["frames"] == N - 2
+    assert tip["path_length_mm"] == pytest.approx(50.0 * (N - 1 - 3) / FPS)  # 20 steps less the 3 across the gap
+    assert tip["max_speed_mm_s"] == pytest.approx(50.0)
+    assert "tip_path_mm" in format_analysis(analyze_mcap(path))

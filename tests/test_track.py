@@ -303,6 +303,7 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     assert "video.mp4" in meta["surftrack"]["video"] and "tiny.pt" in meta["surftrack"]["model"]
     # joint angles fitted on every frame with a posed part, in the MCAP (radians) and the CSV (degrees)
     assert "/instruments/large_needle_driver.0/joints" in topics
+    assert "/instruments/large_needle_driver.0/tool_tip" in topics  # between the fitted jaw tips
     frames_posed = sum(any(st[i] in ("keyframe", "tracking", "predicted") for st in statuses.values())
                        for i in range(n_frames))
     rows = (tmp_path / "joints.csv").read_text().splitlines()
@@ -311,6 +312,7 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
     rc = main(["analyze", str(out), "--png", str(tmp_path / "a.png")])
     text = capsys.readouterr().out
     assert rc == 0 and "large_needle_driver.0.wrist" in text and (tmp_path / "a.png").stat().st_size > 1000
+    assert "tip_path_mm" in text
 
 
 def test_pnp_covariance_is_large_along_an_unconstrained_direction():

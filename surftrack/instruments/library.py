@@ -89,6 +89,18 @@ class Instrument:
         """Pose (part-to-camera, 4x4) of every part for the base (zero-roll shaft frame) pose."""
         return self.chain.forward(base_pose, q)
 
+    def tool_tip(self, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The tool tip for part poses ``poses`` (part-to-camera, 4x4, mm): (R 3x3, t (3,) mm), ``t`` the mean
+        of the distal parts' ``tip`` keypoints (between the jaw tips of a grasper) and ``R`` the orientation
+        of the part they hang from (the wrist); None without a posed tip."""
+        parents = {j.parent for j in self.chain.joints.values()}
+        tips = [n for n, p in self.parts.items() if n not in parents and "tip" in p.keypoints and n in poses]
+        if not tips:
+            return None
+        t = np.mean([transform_points(poses[n], self.parts[n].keypoints["tip"][None])[0] for n in tips], axis=0)
+        holder = self.chain.joints[tips[0]].parent or tips[0]
+        return poses[holder if holder in poses else tips[0]][:3, :3].copy(), t
+
     def keypoints(self, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Camera-frame position of every named keypoint, keyed ``part/keypoint``."""
         out = {}

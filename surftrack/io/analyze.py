@@ -8,7 +8,9 @@
   every status with a pose: "keyframe" and "tracking" are measured, "predicted" ones are carried by the
   filter, interpolated from both sides in a smoothed run; pass :data:`~surftrack.track.MEASURED` for the
   measured ones only),
-* ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees).
+* ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees),
+* ``/instruments/<name>/tool_tip`` (``foxglove.PoseInFrame``): the fitted tool tip, whose motion is
+  reported as a part's is (a step longer than 1.5x the median breaks the chain: no fit in between).
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
 and status times, so a logged "lost" frame, or a pose with a non-tracking status, breaks the chain and
@@ -43,6 +45,7 @@ __all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
 _POSE = re.compile(r"^/parts/([^/]+)/pose$")
 _STATUS = re.compile(r"^/parts/([^/]+)/status$")
 _JOINTS = re.compile(r"^/instruments/([^/]+)/joints$")
+_TIP = re.compile(r"^/instruments/([^/]+)/tool_tip$")
 
 
 def _read(path: Path) -> list[tuple[str, str, int, dict]]:
@@ -101,6 +104,20 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     }
 
 
+def _with_gaps(xyz_mm: dict[int, np.ndarray]) -> tuple[list[int], dict[int, np.ndarray], dict[int, bool]]:
+    """(frames, positions, tracked) of a series logged only where it exists (the tool tip: frames with a
+    fit): an untracked frame is inserted in every step longer than 1.5 x the median step, so that no
+    distance is counted across a gap."""
+    times = sorted(xyz_mm)
+    tracked = {ns: True for ns in times}
+    if len(times) > 2:
+        step = float(np.median(np.diff(times)))
+        for a, b in zip(times[:-1], times[1:]):
+            if b - a > 1.5 * step:
+                tracked[(a + b) // 2] = False
+    return sorted(tracked), xyz_mm, tracked
+
+
 def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSED) -> dict:
     """Summary of a TrackWriter MCAP file::
 
@@ -112,6 +129,8 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                                      "speed_time_s", "speed_mm_s"}}},
          "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
                                 "opening_deg": {"min", "mean", "max"} or None,
+                                "tool_tip": {"frames", "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
+                                             "rms_jerk_mm_s3"} or None,
                                 "series": {"time_s", "<joint>_deg": [...]}}}}
 
     Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
@@ -124,6 +143,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     status: dict[str, dict[int, str]] = {}
     pos_std: dict[str, dict[int, float]] = {}
     joints: dict[str, list[tuple[int, dict[str, float]]]] = {}
+    tips: dict[str, dict[int, np.ndarray]] = {}
     messages = _read(path)
     try:
         for topic, schema, ns, msg in messages:
@@ -135,6 +155,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                 sd = (msg.get("extra") or {}).get("position_std_mm")
                 if sd is not None:
                     pos_std.setdefault(m.group(1), {})[ns] = float(np.linalg.norm(sd))
+            elif (m := _TIP.match(topic)) and schema == "foxglove.PoseInFrame":
+                p = msg["pose"]["position"]
+                tips.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
             elif (m := _JOINTS.match(topic)) and schema == "foxglove.JointStates":
                 vals = {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j}
                 joints.setdefault(m.group(1), []).append((ns, vals))
@@ -177,7 +200,12 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         for j in names:
             series[f"{j}_deg"] = [math.degrees(vals[j]) if j in vals else math.nan for _, vals in msgs]
         opening = [v for v in series.get("opening_deg", []) if math.isfinite(v)]
+        tip = tips.get(name, {})
+        tip_motion = _motion(*_with_gaps(tip)) if tip else None
         instruments[name] = {
+            "tool_tip": None if tip_motion is None else {
+                "frames": len(tip), **{k: tip_motion[k] for k in ("path_length_mm", "mean_speed_mm_s",
+                                                                   "max_speed_mm_s", "rms_jerk_mm_s3")}},
             "frames": len(msgs),
             "t_start_s": msgs[0][0] * 1e-9,
             "t_end_s": msgs[-1][0] * 1e-9,
@@ -214,11 +242,14 @@ def format_analysis(summary: dict) -> str:
         w = max(10, *(len(n) for n in insts))
         lines.append("")
         lines.append(f"{'instrument':<{w}}  {'frames':>6}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'opening_deg min / mean / max':>28}")
+                     f"{'opening_deg min / mean / max':>28}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
+                     f"{'tip_max_mm/s':>12}  {'tip_jerk_mm/s3':>14}")
         for n, i in insts.items():
-            o = i["opening_deg"]
+            o, tip = i["opening_deg"], i.get("tool_tip") or {}
             ostr = "-" if o is None else f"{o['min']:.1f} / {o['mean']:.1f} / {o['max']:.1f}"
-            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}")
+            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}  "
+                         f"{_num(tip.get('path_length_mm'), '11.1f'):>11}  {_num(tip.get('mean_speed_mm_s'), '13.1f'):>13}  "
+                         f"{_num(tip.get('max_speed_mm_s'), '12.1f'):>12}  {_num(tip.get('rms_jerk_mm_s3'), '14.0f'):>14}")
     return "\n".join(lines)
 
 

@@ -349,6 +349,15 @@ class TrackWriter:
             "timestamp": _stamp(ns), "frame_id": frame_id or self.camera_frame,
             "pose": {"position": _t_metres(t_mm), "orientation": _quat(R)}})
 
+    def tool_tip(self, time_s: float, instrument_name: str, R, t_mm) -> None:
+        """PoseInFrame on ``/instruments/<instrument_name>/tool_tip``: the tool tip (between the jaw tips)
+        with the wrist's orientation, in the camera frame, ``t_mm`` written as metres."""
+        inst = _check_name(instrument_name)
+        ns = time_to_ns(time_s)
+        self._write(f"/instruments/{inst}/tool_tip", "foxglove.PoseInFrame", ns, {
+            "timestamp": _stamp(ns), "frame_id": self.camera_frame,
+            "pose": {"position": _t_metres(t_mm), "orientation": _quat(R)}})
+
     def transforms(self, time_s: float, poses: Mapping[str, tuple]) -> None:
         """One FrameTransforms message on ``/tf`` holding ``camera -> <name>`` for every part in
         ``poses`` ({name: (R 3x3, t_mm)}); translations written in metres."""

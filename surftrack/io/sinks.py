@@ -124,7 +124,8 @@ class TumSink:
 
 class JointsSink:
     """Each instrument's joint angles fitted to its parts' poses (``fitters``: (instrument, instance) ->
-    :class:`~surftrack.track.articulation.ArticulationTracker`), as foxglove.JointStates in the MCAP and,
+    :class:`~surftrack.track.articulation.ArticulationTracker`), as foxglove.JointStates in the MCAP (with
+    the fitted tool tip, :meth:`~surftrack.instruments.Instrument.tool_tip`, on ``.../tool_tip``) and,
     with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`. ``timing["joints_s"]``
     accumulates the fitting time."""
 
@@ -141,5 +142,8 @@ class JointsSink:
                 continue
             label = f"{inst}.{instance}"
             self.writer.joint_states(time_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
+            tip = fitter.instrument.tool_tip(fit.part_poses(fitter.instrument))
+            if tip is not None:
+                self.writer.tool_tip(time_s, label, *tip)
             if self.csv is not None:
                 self.csv.add(time_s, label, fit)
