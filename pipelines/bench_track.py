@@ -55,6 +55,7 @@ def _per_frame(clip: Path, boxes: Path, model, tcfg, cfg, device: str):
     from surftrack.pose import PoseEstimator
     from surftrack.pose.kinematic import apply_kinematics
     from surftrack.track import PartState
+    from surftrack.instruments import load_instrument
     from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
 
     est = PoseEstimator(model, cfg.estimator_preset(), device=device, crop_size=tcfg.data.crop,
@@ -64,7 +65,8 @@ def _per_frame(clip: Path, boxes: Path, model, tcfg, cfg, device: str):
     per_frame = {f["index"]: f["detections"] for f in det["frames"]}
     specs = {s.track_id: s for s in match_parts(det, model, str(boxes))[0]}
     kin = cfg.kinematic_config()
-    score = TrackScore(ClipGroundTruth(clip / "gt.json"))
+    lnd = load_instrument("lnd")
+    score = TrackScore(ClipGroundTruth(clip / "gt.json"), instruments={lnd.name: lnd})
     t0, n = time.perf_counter(), 0
     for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
         best = {}
@@ -82,7 +84,7 @@ def _per_frame(clip: Path, boxes: Path, model, tcfg, cfg, device: str):
                   for p, s in specs.items()]
         score.add_frame(index, t_s, states)
         n += 1
-    return score.summary(), n / (time.perf_counter() - t0)
+    return (score.summary(), score.tip_summary()), n / (time.perf_counter() - t0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -108,11 +110,12 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
 
     from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.instruments import load_instrument
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.synth.clip import ClipConfig, make_clip
     from surftrack.track import load_track_config
-    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
+    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary, format_tip_summary
     from surftrack.track.smoother import LagSmoother
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
@@ -140,11 +143,13 @@ def main(argv: list[str] | None = None) -> int:
           f"{cfg.keyframe_every} frames at most, kinematic fit {'on' if cfg.kinematic else 'off'}, smoothing lag "
           f"{cfg.smooth_lag_s:g} s, parts {', '.join(parts)}, device {dev}")
 
+    lnd = load_instrument("lnd")
+    tools = {lnd.name: lnd}
     for clip in clips:
         boxes = _filtered_boxes(clip, parts, tmp / f"{clip.name}.det.json")
         gt = ClipGroundTruth(clip / "gt.json")
         fps = json.loads((clip / "gt.json").read_text()).get("fps") or args.fps
-        causal, smoothed = TrackScore(gt), TrackScore(gt)
+        causal, smoothed = TrackScore(gt, instruments=tools), TrackScore(gt, instruments=tools)
         flow_ms, est_calls, kinds = {}, Counter(), Counter()
         smoother = LagSmoother(round(cfg.smooth_lag_s * fps))
         smooth_s = 0.0
@@ -188,9 +193,12 @@ def main(argv: list[str] | None = None) -> int:
             est_summary, est_fps = _per_frame(clip, boxes, model, tcfg, cfg, args.device)
             print(f"per-frame estimation (decode, estimator{', kinematic fit' if cfg.kinematic else ''}): "
                   f"{est_fps:.2f} frames/s -> smoothed tracking {fps_smoothed / est_fps:.1f}x faster")
-            print("\nper-frame estimation:\n" + format_summary(est_summary), end="")
+            print("\nper-frame estimation:\n" + format_summary(est_summary[0]), end="")
+            print(format_tip_summary(est_summary[1]), end="")
         print("\ncausal tracking (--causal):\n" + format_summary(causal.summary()), end="")
+        print(format_tip_summary(causal.tip_summary()), end="")
         print("\nsmoothed tracking (default):\n" + format_summary(smoothed.summary()), end="")
+        print(format_tip_summary(smoothed.tip_summary()), end="")
     return 0
 
 

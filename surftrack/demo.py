@@ -18,7 +18,8 @@ from surftrack.annotate import AnnotateOptions, annotate_video
 from surftrack.jsonsafe import json_safe
 from surftrack.synth.clip import ClipConfig, make_clip
 from surftrack.track import load_track_config
-from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
+from surftrack.instruments import load_instrument
+from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary, format_tip_summary
 
 
 def run_demo(out_dir: Path, seconds: float = 6.0, fps: float = 15.0, seed: int = 0, model: str | None = None,
@@ -31,19 +32,21 @@ def run_demo(out_dir: Path, seconds: float = 6.0, fps: float = 15.0, seed: int =
     clip_dir = out_dir / "clip"
     clip = make_clip(clip_dir, "lnd", ClipConfig(seconds=seconds, fps=fps), seed=seed, progress=progress)
     t_clip = time.perf_counter() - t0
-    score = TrackScore(ClipGroundTruth(clip_dir / "gt.json"))
+    lnd = load_instrument("lnd")
+    score = TrackScore(ClipGroundTruth(clip_dir / "gt.json"), instruments={lnd.name: lnd})
     opts = AnnotateOptions(model=model, camera=clip_dir / "camera.json", out=out_dir / "tracks.mcap",
                            config=load_track_config(), overlay=out_dir / "overlay.mp4",
                            export_tum=out_dir / "tum", mcap_images=True, progress=progress)
     run = annotate_video(clip_dir / "video.mp4", clip_dir / "det.json", opts,
                          on_frame=lambda i, t, states: score.add_frame(i, t, states))
-    accuracy = score.summary()
+    accuracy, tips = score.summary(), score.tip_summary()
     summary = {
         "clip": {"folder": str(clip_dir), "seconds": seconds, "fps": fps, "seed": seed,
                  "frames_out_of_view": clip.get("main_out_of_view_frames"), "frames_occluded": clip.get("occluded_frames"),
                  "made_in_s": round(t_clip, 1)},
         "tracking": {k: run[k] for k in ("frames", "seconds", "fps", "track_ms_per_frame", "notes", "parts")},
         "accuracy": accuracy,
+        "tool_tip": tips,
         "outputs": run["outputs"],
         "total_s": round(time.perf_counter() - t0, 1),
     }
@@ -51,5 +54,5 @@ def run_demo(out_dir: Path, seconds: float = 6.0, fps: float = 15.0, seed: int =
     (out_dir / "summary.md").write_text(
         f"Tracking {run['frames']} frames at {run['fps']:.1f} frames/s. Against the ground truth (ADD-10 with "
         f"the SurgRIPE diameter; frames where the part is visible, a frame without a pose counts as a miss):\n\n"
-        + format_summary(accuracy))
+        + format_summary(accuracy) + "\n" + format_tip_summary(tips))
     return summary

@@ -623,3 +623,37 @@ def test_the_sparse_config_is_the_default_with_sparse_keyframes():
         d.pop("keyframe_every")
         d["kalman"].pop("accel_std_mm_s2")
     assert sparse == default
+
+
+def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):
+    """TrackScore.tip_summary: the true part poses give the true tool-tip path and no error; a jaw without
+    a pose on a frame breaks the path there; a shifted jaw moves the tip by half its shift."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track import PartState
+
+    lnd = load_instrument("lnd")
+    gt = ClipGroundTruth(clip / "gt.json")
+    specs = [PartSpec(tid, k + 1, lnd.name, 0, p, lnd.parts[p].mesh.vertices, lnd.parts[p].mesh.faces)
+             for k, (p, tid) in enumerate(sorted(lnd_parts.items()))]
+    n = len(_frames(clip))
+
+    def score(shift=0.0, drop=None):
+        s = TrackScore(gt, instruments={lnd.name: lnd})
+        for i in range(n):
+            states = []
+            for sp in specs:
+                R, t, _ = gt.pose(i, sp.track_id)
+                if sp.part == "jaw_left" and i == drop:
+                    R = t = None
+                elif sp.part == "jaw_left":
+                    t = t + [shift, 0.0, 0.0]
+                states.append(PartState(sp, "keyframe" if R is not None else "lost", 1.0, R, t, None))
+            s.add_frame(i, i / 10.0, states)
+        return s.tip_summary()["large_needle_driver.0"]
+
+    exact = score()
+    assert exact["frames"] >= 5 and exact["tip_err_median_mm"] < 1e-9 and exact["path_ratio"] == pytest.approx(1.0)
+    assert score(shift=2.0)["tip_err_median_mm"] == pytest.approx(1.0)
+    scored = [i for i in range(n) if max(gt.pose(i, lnd_parts[j])[2] for j in ("jaw_left", "jaw_right")) >= 100]
+    dropped = score(drop=scored[len(scored) // 2])
+    assert dropped["frames"] == exact["frames"] - 1 and dropped["path_gt_mm"] < exact["path_gt_mm"]

@@ -8,7 +8,9 @@ the ground truth's (mm, deg), over consecutive frames that both have a pose.
 
 Kinematics: path length (sum of the frame-to-frame translation of the part's origin) estimated and true
 over the same pairs of consecutive visible frames with a pose, and the speed error: the median over
-those pairs of |estimated - true speed|, relative to the median true speed. Confidence calibration:
+those pairs of |estimated - true speed|, relative to the median true speed. Given the instruments, the
+same for each instrument's tool tip (:meth:`~surftrack.instruments.Instrument.tool_tip`, between the jaw
+tips), from the tracked part poses (:meth:`TrackScore.tip_summary`). Confidence calibration:
 ADD-10 of the frames whose confidence is >= 0.5 and of those below, and Spearman's rank correlation
 between confidence and ADD (negative when confidence predicts error).
 """
@@ -16,12 +18,15 @@ between confidence and ADD (negative when confidence predicts error).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import spearmanr
 
 from surftrack.eval import add, diameter_bbox_diagonal, re, te
+from surftrack.geometry import se3
+from surftrack.instruments import Instrument
 from surftrack.track.flow import pose_distance
 from surftrack.track.tracker import PartState
 
@@ -49,8 +54,11 @@ class TrackScore:
     """Accumulates per-part errors over a run; :meth:`summary` gives the table. Parts count on frames
     where at least ``min_visible_px`` of them are visible."""
 
-    def __init__(self, gt: ClipGroundTruth, min_visible_px: int = 100):
+    def __init__(self, gt: ClipGroundTruth, min_visible_px: int = 100,
+                 instruments: Mapping[str, Instrument] | None = None):
         self.gt, self.min_visible_px = gt, min_visible_px
+        self.instruments = dict(instruments or {})
+        self.tips: dict[str, dict] = {}
         self.rows: dict[str, dict] = {}
         self._prev: dict[str, tuple] = {}
         self._diam: dict[str, float] = {}
@@ -87,6 +95,53 @@ class TrackScore:
                 dt_s = time_s - prev[5]
                 row["step_est"].append((dt, dt_s))
                 row["step_gt"].append(gt_)
+        self._add_tips(index, time_s, states)
+
+    def _add_tips(self, index: int, time_s: float, states: list[PartState]) -> None:
+        """The tool tip (:meth:`Instrument.tool_tip`) of each instrument in ``self.instruments``, from the
+        frame's part poses and from the ground truth's, on frames where every tip-carrying part has a pose
+        and one of them is visible."""
+        groups: dict[tuple[str, int], list[PartState]] = {}
+        for s in states:
+            groups.setdefault((s.spec.instrument, s.spec.instance), []).append(s)
+        for (name, instance), group in groups.items():
+            inst = self.instruments.get(name)
+            if inst is None:
+                continue
+            parents = {j.parent for j in inst.chain.joints.values()}
+            carriers = [s for s in group if s.spec.part not in parents and "tip" in inst.parts[s.spec.part].keypoints]
+            rec = self.tips.setdefault(f"{name}.{instance}", {"err": [], "step_est": [], "step_gt": [], "prev": None})
+            gt = {s.spec.part: self.gt.pose(index, s.spec.track_id) for s in group}
+            if (not carriers or any(s.R is None for s in carriers)
+                    or max(gt[s.spec.part][2] for s in carriers) < self.min_visible_px):
+                rec["prev"] = None
+                continue
+            est_tip = inst.tool_tip({s.spec.part: se3(s.R, s.t) for s in group if s.R is not None})[1]
+            gt_tip = inst.tool_tip({p: se3(R, t) for p, (R, t, _) in gt.items()})[1]
+            rec["err"].append(float(np.linalg.norm(est_tip - gt_tip)))
+            prev = rec["prev"]
+            if prev is not None and prev[0] == index - 1:
+                rec["step_est"].append((float(np.linalg.norm(est_tip - prev[1])), time_s - prev[3]))
+                rec["step_gt"].append(float(np.linalg.norm(gt_tip - prev[2])))
+            rec["prev"] = (index, est_tip, gt_tip, time_s)
+
+    def tip_summary(self) -> dict[str, dict]:
+        """Per instrument instance: frames scored, median tool-tip error (mm), tool-tip path estimated /
+        true (mm) over consecutive scored frames, and the speed error (%, as the parts')."""
+        out = {}
+        for label, r in self.tips.items():
+            est = np.array([d for d, _ in r["step_est"]])
+            true = np.asarray(r["step_gt"])
+            dts = np.array([t for _, t in r["step_est"]])
+            out[label] = {
+                "frames": len(r["err"]),
+                "tip_err_median_mm": float(np.median(r["err"])) if r["err"] else float("nan"),
+                "path_mm": float(est.sum()), "path_gt_mm": float(true.sum()),
+                "path_ratio": float(est.sum() / true.sum()) if true.sum() > 0 else float("nan"),
+                "speed_err_pct": (100.0 * float(np.median(np.abs(est - true) / dts) / np.median(true / dts))
+                                  if len(true) and np.median(true) > 0 else float("nan")),
+            }
+        return out
 
     def summary(self) -> dict[str, dict]:
         """Per part: frames visible / with a pose, RE and TE medians, ADD mean, ADD-10 (%, over visible
@@ -123,6 +178,15 @@ class TrackScore:
                 "conf_add_spearman": rho,
             }
         return out
+
+
+def format_tip_summary(summary: dict[str, dict]) -> str:
+    """A markdown table of :meth:`TrackScore.tip_summary`."""
+    lines = ["| tool tip | frames | error median (mm) | path est / gt (mm) | speed err (%) |", "|---|---|---|---|---|"]
+    for label, r in summary.items():
+        lines.append(f"| {label} | {r['frames']} | {r['tip_err_median_mm']:.1f} | {r['path_mm']:.0f} / "
+                     f"{r['path_gt_mm']:.0f} = {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} |")
+    return "\n".join(lines) + "\n"
 
 
 def format_summary(summary: dict[str, dict]) -> str:
