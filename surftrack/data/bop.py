@@ -34,6 +34,7 @@ import trimesh
 
 from surftrack.geometry import PinholeCamera
 from surftrack.instruments.bop_models import load_bop_models, model_info
+from surftrack.instruments.cad import read_mesh_file
 from surftrack.instruments.part import Part
 
 RGB_EXTS = (".png", ".jpg", ".jpeg")
@@ -122,7 +123,10 @@ def load_models(models_dir: str | Path) -> dict[int, Part]:
     info = read_json(d / "models_info.json") if (d / "models_info.json").is_file() else {}
     parts: dict[int, Part] = {}
     for i, p in enumerate(files):
-        mesh = trimesh.load(p, force="mesh", process=False)
+        try:
+            mesh = read_mesh_file(p)
+        except ValueError as e:
+            raise DatasetError(str(e)) from None
         rec = info.get(str(i + 1), {})
         kps = {k: np.asarray(v) for k, v in rec.get("keypoints", {}).items()}
         parts[i + 1] = Part(rec.get("part", f"obj_{i + 1:06d}"), mesh, keypoints=kps)
@@ -333,7 +337,10 @@ def import_surgripe(src: str | Path, dst: str | Path, obj_name: str, mesh_path: 
     mesh_path = Path(mesh_path)
     if not mesh_path.is_file():
         raise DatasetError(f"{mesh_path}: mesh file is missing")
-    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    try:
+        mesh = read_mesh_file(mesh_path)  # STL, OBJ, PLY with n-gon faces, glTF, COLLADA
+    except ValueError as e:
+        raise DatasetError(str(e)) from None
     if mesh_scale != 1.0:
         mesh.apply_scale(mesh_scale)
     part = Part(obj_name, mesh)
