@@ -14,7 +14,7 @@ from surftrack.cli import main
 from surftrack.instruments import InstrumentError, InstrumentRegistry, JointState, fit_configuration, load_instrument_file
 from surftrack.instruments.cad import read_mesh_file
 from surftrack.instruments.check import check_instrument, size_warnings
-from surftrack.instruments.contacts import ContactRule, contact_depths
+from surftrack.instruments.contacts import ContactRule, collision_manager, contact_depths
 from surftrack.synth.checks import PartCollision
 
 _QUADS = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
@@ -186,7 +186,7 @@ def test_unknown_keys_are_errors_naming_key_and_file(tmp_path, capsys, where):
 def test_touching_cad_parts_pass_the_collision_rule_and_check_reports_them(cad_yaml, capsys):
     tool = load_instrument_file(cad_yaml)
     rest = tool.forward(np.eye(4), tool.limits.clip(__import__("surftrack").instruments.JointState()))
-    touching = contact_depths({n: p.mesh for n, p in tool.parts.items()}, rest)
+    touching = contact_depths(collision_manager({n: p.mesh for n, p in tool.parts.items()}), rest)
     assert ("shaft", "wrist") in touching and ("jaw_left", "wrist") in touching  # what rejected every pose
     rule = ContactRule.of(tool)
     assert set(rule.at_rest) == set(touching)

@@ -13,7 +13,7 @@ from itertools import combinations
 
 import numpy as np
 
-from surftrack.instruments.contacts import ContactRule, contact_depths
+from surftrack.instruments.contacts import ContactRule, collision_manager, contact_depths
 from surftrack.instruments.kinematics import JOINT_NAMES, JointState
 from surftrack.instruments.library import Instrument
 
@@ -84,12 +84,12 @@ def check_instrument(instrument: Instrument, samples: int = 200, seed: int = 0) 
                              f"but its volume and inside tests are undefined")
     out.warnings += size_warnings(instrument)
     rule = ContactRule.of(instrument)
-    meshes = {n: p.mesh for n, p in instrument.parts.items()}
+    manager = collision_manager({n: p.mesh for n, p in instrument.parts.items()})
     pairs = [tuple(sorted(p)) for p in combinations(instrument.parts, 2)]
     hits = {p: 0 for p in pairs}
     deepest = {p: 0.0 for p in pairs}
     for q in random_joint_states(instrument, samples, seed):
-        for (a, b), depth in contact_depths(meshes, instrument.forward(np.eye(4), q)).items():
+        for (a, b), depth in contact_depths(manager, instrument.forward(np.eye(4), q)).items():
             deepest[(a, b)] = max(deepest[(a, b)], depth)
             hits[(a, b)] += rule.rejects(a, b, depth)
     out.lines.append(f"  pairs of parts ({samples} random joint states over the instrument's reach):")

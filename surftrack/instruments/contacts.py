@@ -28,12 +28,21 @@ def _pair(a: str, b: str) -> Pair:
     return (a, b) if a < b else (b, a)
 
 
-def contact_depths(meshes: dict[str, trimesh.Trimesh], poses: dict[str, np.ndarray]) -> dict[Pair, float]:
-    """Deepest penetration (mm, >= 0) of every pair of ``meshes`` (posed by ``poses``) in contact."""
+def collision_manager(meshes: dict[str, trimesh.Trimesh]) -> trimesh.collision.CollisionManager:
+    """An fcl manager holding ``meshes`` under their names; pose them with ``set_transform`` (building the
+    meshes' BVHs is the costly part, so reuse one manager over many poses)."""
     m = trimesh.collision.CollisionManager()
     for name, mesh in meshes.items():
-        m.add_object(name, mesh, transform=poses[name])
-    return depths_of(m)
+        m.add_object(name, mesh)
+    return m
+
+
+def contact_depths(manager: trimesh.collision.CollisionManager, poses: dict[str, np.ndarray]) -> dict[Pair, float]:
+    """Deepest penetration (mm, >= 0) of every pair of the manager's meshes in contact, posed by ``poses``
+    (name -> 4x4)."""
+    for name, T in poses.items():
+        manager.set_transform(name, T)
+    return depths_of(manager)
 
 
 def depths_of(manager: trimesh.collision.CollisionManager) -> dict[Pair, float]:
@@ -56,8 +65,8 @@ class ContactRule:
 
     @classmethod
     def of(cls, instrument: Instrument, tolerance_mm: float = LINKED_TOLERANCE_MM) -> ContactRule:
-        poses = instrument.forward(np.eye(4), instrument.rest)
-        at_rest = contact_depths({n: p.mesh for n, p in instrument.parts.items()}, poses)
+        manager = collision_manager({n: p.mesh for n, p in instrument.parts.items()})
+        at_rest = contact_depths(manager, instrument.forward(np.eye(4), instrument.rest))
         linked = frozenset(_pair(n, j.parent) for n, j in instrument.chain.joints.items() if j.parent is not None)
         return cls(at_rest, linked, tolerance_mm)
 
