@@ -245,3 +245,36 @@ def test_default_config():
     assert c.gate_chi2 == pytest.approx(22.46)
     assert c.meas_cov().shape == (6, 6)
     assert np.isclose(c.meas_cov()[3, 3], np.radians(c.meas_rot_std_deg) ** 2)
+
+
+def test_a_measurement_of_some_directions_leaves_the_others_alone():
+    """A ``basis`` update (a silhouette seeing x, y and the in-plane turn, not the depth) equals the full
+    update with an infinitely uncertain depth, and moves nothing it does not see."""
+    rng = np.random.default_rng(5)
+    times, Rs, ts = _trajectory(12, rng)
+    Rm, tm = _noisy(Rs, ts, rng)
+    kf, *_ = _track(times[:10], Rm[:10], tm[:10], KalmanConfig(accel_std_mm_s2=1e-6))  # no coupling by noise
+    kf.predict(times[10])
+    ref = PoseKalman(kf.config)
+    ref.kf.x, ref.kf.P, ref.R_ref, ref.time = kf.kf.x.copy(), kf.kf.P.copy(), kf.R_ref.copy(), kf.time
+    basis = np.zeros((3, 6))
+    basis[0, 0] = basis[1, 1] = basis[2, 5] = 1.0
+    R_meas, t_meas = kf.pose[0] @ so3_exp([0.0, 0.0, 0.05]), kf.pose[1] + [1.0, -2.0, 30.0]  # depth way off
+    assert kf.update(R_meas, t_meas, np.diag([0.5, 0.5, 1e-3]), basis=basis)
+    full = np.diag([0.5, 0.5, 1e12, 1e12, 1e12, 1e-3])
+    assert ref.update(R_meas, t_meas, full, gate=False)
+    np.testing.assert_allclose(kf.pose[1], ref.pose[1], atol=1e-4)
+    np.testing.assert_allclose(kf.pose[0], ref.pose[0], atol=1e-7)
+    # the depth came from the prediction (and its correlation with x, y), not the measurement's +30 mm
+    assert abs(kf.pose[1][2] - t_meas[2]) > 25.0
+    # the gate counts 3 degrees of freedom: chi2(3) 99.9 % = 16.27 rejects a d2 of 19 that 6 would pass
+    kf.predict(times[11])
+    cov = np.diag([0.5, 0.5, 1e-3])
+    H = np.zeros((6, 12))
+    H[0:3, 0:3] = np.eye(3)
+    H[3:6, 6:9] = np.eye(3)
+    S = basis @ H @ kf.kf.P @ H.T @ basis.T + cov
+    y = np.array([1.0, 0.0, 0.0])
+    y *= np.sqrt(19.0 / (y @ np.linalg.solve(S, y)))
+    assert not kf.update(kf.pose[0], kf.pose[1] + [y[0], 0.0, 0.0], cov, basis=basis)
+    assert np.isclose(kf.last_d2, 19.0) and 19.0 < CHI2_6DOF_999

@@ -55,9 +55,10 @@ def test_flow_and_pnp_follow_the_ground_truth_motion(clip, lnd_parts):
     assert re_med < 3.0 and te_med < 2.0, f"flow step errors: RE median {re_med:.2f} deg, TE median {te_med:.2f} mm"
 
 
-def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny_ckpt):
-    """Seeded with the true poses and never asked to re-estimate, flow + Kalman keep the wrist near the
-    ground truth while it is visible."""
+@pytest.mark.parametrize("measure", ["flow", "region"])
+def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny_ckpt, measure):
+    """Seeded with the true poses and never asked to re-estimate, flow or the region measurement + Kalman
+    keep the wrist near the ground truth while it is visible."""
     from surftrack.model import load_checkpoint
     from surftrack.pose import PoseEstimator
 
@@ -65,7 +66,8 @@ def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny
     specs = [PartSpec(tid, model.parts[i].obj_id, "large_needle_driver", 0, p, model.parts[i].vertices,
                       model.parts[i].faces)
              for i, (p, tid) in enumerate(sorted(lnd_parts.items(), key=lambda kv: kv[1]))]
-    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000, flow=True)
+    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000, flow=measure == "flow",
+                      region=measure == "region")
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     tracker = Tracker(PoseEstimator(model, "fast", device="cpu", crop_size=64), K, (320, 256), specs, cfg)
     score = TrackScore(gt)
@@ -85,6 +87,7 @@ def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny
         states = tracker.step(frames[i], i / 10.0, None)
         statuses.append({s.spec.part: s.status for s in states})
         score.add_frame(i, i / 10.0, states)
+
     assert statuses[0]["wrist"] == "keyframe"
     assert sum(s["wrist"] == "tracking" for s in statuses[1:]) >= 4, statuses
     w = score.summary()["large_needle_driver.0.wrist"]

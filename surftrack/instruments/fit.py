@@ -55,7 +55,7 @@ from surftrack.geometry import rotation_angle_deg, se3, se3_inv, so3_exp
 from surftrack.instruments.kinematics import JOINT_NAMES, JointState, rcm_base_pose
 from surftrack.instruments.library import Instrument
 
-__all__ = ["FitConfig", "JointFit", "estimate_trocar", "fit_configuration"]
+__all__ = ["FitConfig", "JointFit", "estimate_trocar", "fit_configuration", "joints_from_poses"]
 
 # Order in which joints of an undetermined group are held at their reference value.
 HOLD_ORDER = ("opening", "yaw", "pitch", "roll")
@@ -328,6 +328,19 @@ def _closed_form_joints(A: np.ndarray, b: np.ndarray, q_ref: np.ndarray) -> tupl
     P = np.linalg.pinv(A) @ A  # projector onto the row space of A
     determined = np.abs(np.diag(P) - 1.0) < 1e-9
     return q, determined
+
+
+def joints_from_poses(instrument: Instrument, poses: Mapping[str, np.ndarray], q_ref: JointState) -> JointState:
+    """The joint values the relative rotations of posed parts imply (``poses``: part -> 4x4 part-to-camera,
+    any subset), in closed form: joints the parts do not determine keep ``q_ref``'s value; clipped to the
+    limits. No base pose and no iterations: a fast start for trackers that refine it themselves."""
+    known = {n: np.asarray(T, np.float64) for n, T in poses.items() if n in instrument.chain.joints}
+    ref = np.array([getattr(q_ref, n) for n in JOINT_NAMES])
+    A, b = _pair_relations(instrument, known)
+    q, determined = _closed_form_joints(A, b, ref)
+    q = np.where(determined, q, ref)
+    limits = _limits(instrument)
+    return JointState(*(float(np.clip(q[k], *limits[n])) for k, n in enumerate(JOINT_NAMES)))
 
 
 def _initial_base(instrument: Instrument, poses: dict[str, np.ndarray], q: np.ndarray,

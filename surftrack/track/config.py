@@ -44,6 +44,18 @@ class TrackConfig:
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
     initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
+    ``region``: measure parts between keyframes by their silhouettes (:mod:`surftrack.track.region`:
+    colour statistics along lines normal to the rendered outline, one fit per instrument through its
+    kinematics). Up to ``region_points`` contour points per part; a fit whose lines agree with its
+    outline less than ``region_min_agreement`` (share of line pixels on the right side) is not used; the
+    colour histograms follow the image at ``region_learn_rate`` per frame; the instrument's joints may move
+    ``region_joint_std_deg`` per frame (the fit's prior). Only the pose directions the fit pins better
+    than ``region_max_std_mm`` / ``region_max_std_deg`` are fused (a silhouette sees the lateral position,
+    not the depth), with ``region_floor_mm`` / ``region_floor_deg`` added. Off by default: on the
+    benchmark clips it held parts between sparse keyframes (no drift of the shaft's roll) but scored
+    below keyframe interpolation by the smoother, whose error is the estimator's depth
+    (docs/results/2026-12-03-region.md).
+
     ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
@@ -63,6 +75,15 @@ class TrackConfig:
     views: int = 0
     keyframe_every: int = 1
     flow: bool = False
+    region: bool = False
+    region_points: int = 100
+    region_min_agreement: float = 0.7
+    region_learn_rate: float = 0.2
+    region_floor_mm: float = 0.3
+    region_floor_deg: float = 1.0
+    region_joint_std_deg: float = 10.0
+    region_max_std_mm: float = 1.0
+    region_max_std_deg: float = 3.0
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3
@@ -109,13 +130,13 @@ class TrackConfig:
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
         for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio",
-                     "confidence_rejected"):
+                     "confidence_rejected", "region_min_agreement", "region_learn_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
         if self.max_occluded < 0:
             raise ValueError(f"max_occluded must be >= 0, got {self.max_occluded}")
-        for name in ("max_points", "refresh_every", "max_predicted"):
+        for name in ("max_points", "refresh_every", "max_predicted", "region_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("kinematic_anchor_weight", "kinematic_anchor_translation_weight"):
@@ -123,10 +144,11 @@ class TrackConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
-        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_std_mm"):
+        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_std_mm",
+                     "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("flow_floor_mm", "flow_floor_deg"):
+        for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.smooth_lag_s) and self.smooth_lag_s >= 0):

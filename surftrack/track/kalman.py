@@ -99,6 +99,13 @@ class KalmanConfig:
         return np.diag([self.meas_pos_std_mm**2] * 3 + [r**2] * 3)
 
 
+def _chi2_999(dof: int) -> float:
+    """chi2 quantile at 99.9 % for ``dof`` degrees of freedom."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(0.999, dof))
+
+
 def _skew(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
@@ -308,36 +315,46 @@ class PoseKalman:
         return self.R_ref @ so3_exp(x[6:9]) @ so3_exp(x[9:12] * dt), x[0:3] + x[3:6] * dt
 
     # ------------------------------------------------------------------ measurement
-    def _innovation(self, R_meas, t_meas, meas_cov) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _innovation(self, R_meas, t_meas, meas_cov, basis: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         self._require_init()
         meas_cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
         x = self.kf.x.reshape(12)
         z = np.concatenate([np.asarray(t_meas, np.float64).reshape(3),
                             so3_log(self.R_ref.T @ np.asarray(R_meas, np.float64))])
-        y = z - _H @ x
-        S = _H @ self.kf.P @ _H.T + meas_cov
-        return z, y, S
+        H = _H if basis is None else basis @ _H
+        if basis is not None:
+            z = basis @ z
+        y = z - H @ x
+        S = H @ self.kf.P @ H.T + meas_cov
+        return z, y, S, H
 
     def gate(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray | None = None) -> float:
         """Squared Mahalanobis distance of the measurement against the current (prior) state."""
-        _, y, S = self._innovation(R_meas, t_meas, meas_cov)
+        _, y, S, _ = self._innovation(R_meas, t_meas, meas_cov)
         return float(y @ np.linalg.solve(S, y))
 
     def update(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray | None = None,
-               gate: bool = True) -> bool:
-        """Fuse a pose measurement at the current filter time. Returns False (state untouched) when gated."""
+               gate: bool = True, basis: np.ndarray | None = None) -> bool:
+        """Fuse a pose measurement at the current filter time. Returns False (state untouched) when gated.
+
+        ``basis`` (m x 6): fuse only these m combinations of the pose (position mm, body rotation rad),
+        ``meas_cov`` then being their m x m covariance: a measurement that sees some directions of the
+        pose and not others (a silhouette: the lateral position, hardly the depth) claims nothing about
+        the rest. The gate is then chi2 with m degrees of freedom at the same tail probability."""
         meas_cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
         if not (np.isfinite(R_meas).all() and np.isfinite(t_meas).all() and np.isfinite(meas_cov).all()):
             self.rejections_in_a_row += 1  # a non-finite measurement is never fused, gated or not
             self.last_d2 = math.inf
             return False
-        z, y, S = self._innovation(R_meas, t_meas, meas_cov)
+        z, y, S, H = self._innovation(R_meas, t_meas, meas_cov, basis)
         d2 = float(y @ np.linalg.solve(S, y))
         self.last_d2 = d2
-        if not math.isfinite(d2) or (gate and d2 > self.config.gate_chi2):
+        limit = self.config.gate_chi2 if basis is None else self.config.gate_chi2 * _chi2_999(len(z)) / CHI2_6DOF_999
+        if not math.isfinite(d2) or (gate and d2 > limit):
             self.rejections_in_a_row += 1
             return False
-        self.kf.update(z.reshape(6, 1), R=meas_cov)
+        self.kf.update(z.reshape(-1, 1), R=meas_cov, H=H)
         # inject the rotation error into the nominal and reset it (with the covariance reset Jacobian)
         x = self.kf.x.reshape(12).copy()
         dtheta = x[6:9].copy()

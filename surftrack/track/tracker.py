@@ -34,6 +34,7 @@ from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
 from surftrack.track.kalman import FilterStep, PoseKalman
+from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker
 from surftrack.track.status import POSED, Status
 
 
@@ -192,6 +193,30 @@ class Tracker:
         # top of it), without cutting the track in two for the smoother
         self._widen = 100.0 * self._est_cov
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
+        self._region_floor = np.diag([self.cfg.region_floor_mm**2] * 3 + [np.radians(self.cfg.region_floor_deg)**2] * 3)
+        self._region: RegionTracker | None = None
+        self._region_specs = list(specs)
+        self._described: dict[str, object] = {}  # instrument key -> its Instrument (None: not described)
+        self._joints: dict[str, object] = {}  # instrument key -> last JointState the region fit found
+
+    def _region_tracker(self) -> RegionTracker:
+        """The region measurement's renderer and colour models, made on first use (a GL context)."""
+        if self._region is None:
+            from surftrack.pose.kinematic import described_instrument, instrument_parts
+
+            by_instrument = instrument_parts(self.estimator.model.parts)
+            meshes, groups, attachments = {}, {}, {}
+            for s in self._region_specs:
+                meshes[s.name] = trimesh.Trimesh(s.vertices, s.faces, process=False)
+                groups[s.name] = f"{s.instrument}.{s.instance}"
+                inst, _ = described_instrument(s.instrument, by_instrument.get(s.instrument), caller_reports=True,
+                                               registry=self.instruments)
+                self._described[groups[s.name]] = inst
+                # the long shaft tube the model does not track is still part of the silhouette
+                attachments[s.name] = [a.mesh for a in inst.attachments if a.part == s.part] if inst else []
+            self._region = RegionTracker(self.K, self.size, meshes, groups, attachments,
+                                         RegionConfig(max_points=self.cfg.region_points))
+        return self._region
 
     # ------------------------------------------------------------------ helpers
     def _pick_box(self, tr: _Track, boxes: Sequence[tuple[Box, float]], pbox: Box | None) -> Box | None:
@@ -247,6 +272,8 @@ class Tracker:
         ``boxes`` maps track id -> [(box, score), ...] detected in this frame (missing = none)."""
         gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
         self._propagate(gray, time_s)
+        if self.cfg.region:
+            self._measure_regions(frame_rgb)
         requests, out_boxes = self._schedule(boxes or {})
         if requests:
             self._estimate(frame_rgb, time_s, requests)
@@ -325,6 +352,65 @@ class Tracker:
                 tr.confidence *= 0.7
             tr.info["flow_ms"] = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
 
+    def _measure_regions(self, frame_rgb: np.ndarray) -> None:
+        """Between keyframes, measure every predicted part against the frame's colours along its
+        silhouette (:mod:`.region`); all posed parts are rendered together, so tools hide each other."""
+        cfg = self.cfg
+        due = [tr for tr in self.tracks if tr.has_pose and tr.status == Status.PREDICTED
+               and "source" not in tr.info and tr.since_keyframe < cfg.keyframe_every]
+        if not due:
+            return
+        t0 = time.perf_counter()
+        rt = self._region_tracker()
+        posed = {tr.spec.name: tr.kf.pose for tr in self.tracks if tr.has_pose}
+        contours, masks = rt.contours(posed)
+        for group, mask in masks.items():
+            rt.learn(frame_rgb, group, mask, rate=cfg.region_learn_rate)
+        share = 1e3 * (time.perf_counter() - t0) / len(due)
+        groups: dict[str, list[_Track]] = {}
+        for tr in due:
+            groups.setdefault(f"{tr.spec.instrument}.{tr.spec.instance}", []).append(tr)
+        for key, trs in groups.items():
+            t1 = time.perf_counter()
+            results = {}
+            for model, prior in self._region_models(key, trs):
+                results.update(rt.measure(frame_rgb, contours, model, prior))
+                if isinstance(model, ArticulatedModel) and model.solution is not None:
+                    self._joints[key] = model.joint_state(model.solution)
+            for tr in trs:
+                res = results.get(tr.spec.name)
+                if res is None:
+                    continue
+                tr.info.update(region_lines=res.lines, agreement=res.agreement)
+                basis, cov = res.observed(cfg.region_max_std_mm, cfg.region_max_std_deg)
+                if (res.agreement >= cfg.region_min_agreement and len(basis)
+                        and tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis)):
+                    tr.status, tr.since_meas = Status.TRACKING, 0
+                    tr.info["d2"] = tr.kf.last_d2
+                    tr.confidence = max(tr.confidence, res.agreement)
+            for tr in trs:
+                tr.info["region_ms"] = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+
+    def _region_models(self, key: str, trs: list[_Track]) -> list[tuple[PoseModel, np.ndarray]]:
+        """How the region measurement moves one instrument's due parts, with each model's prior
+        covariance: through the instrument's kinematics from its root part (the shaft) when the instrument
+        is described and its root is among them, else each part as a free rigid body."""
+        inst = self._described.get(key)
+        by_part = {tr.spec.part: tr for tr in trs}
+        pose_cov = lambda tr: PoseKalman.H @ tr.kf.covariance @ PoseKalman.H.T  # noqa: E731
+        if inst is not None and inst.chain.order[0] in by_part:
+            from surftrack.instruments import JointState, joints_from_poses
+
+            root = by_part[inst.chain.order[0]]
+            posed = {p: se3(*tr.kf.pose) for p, tr in by_part.items()}
+            q0 = joints_from_poses(inst, posed, self._joints.get(key, JointState()))
+            model = ArticulatedModel(inst, {p: tr.spec.name for p, tr in by_part.items()}, *root.kf.pose, q0)
+            prior = np.zeros((model.size, model.size))
+            prior[:6, :6] = pose_cov(root)
+            prior[6:, 6:] = np.eye(model.size - 6) * np.radians(self.cfg.region_joint_std_deg) ** 2
+            return [(model, prior)]
+        return [(PoseModel(tr.spec.name, *tr.kf.pose), pose_cov(tr)) for tr in trs]
+
     def _schedule(self, boxes: Mapping[int, Sequence[tuple[Box, float]]]
                   ) -> tuple[list[tuple[_Track, Box, tuple | None, str]], dict[int, Box | None]]:
         """Drop parts that left the image, pick each part's box, and list who needs the estimator and
@@ -350,8 +436,8 @@ class Tracker:
                     why = "box disagreement"
                 elif tr.kf.lost:
                     why = "gate lockout"
-                elif cfg.flow and tr.since_meas >= cfg.max_predicted:
-                    why = "no flow measurement"
+                elif (cfg.flow or cfg.region) and tr.since_meas >= cfg.max_predicted:
+                    why = "no measurement"
                 elif tr.since_keyframe >= cfg.keyframe_every:
                     why = "cadence"
                 if why is not None:
