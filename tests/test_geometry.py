@@ -37,6 +37,28 @@ def random_pose():
     return se3(so3_exp(rng.normal(size=3)), rng.normal(scale=50, size=3))
 
 
+@pytest.mark.parametrize("batch", [False, True])
+def test_so3_exp_log_match_scipy_near_zero_and_pi(batch):
+    """The numpy exponential and logarithm against scipy's, one at a time and batched, over angles from
+    0 and 1e-14 rad to pi and pi - 1e-12 (where the axis-angle sign is ambiguous: compared as matrices)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(800, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([rng.uniform(0, np.pi, 400), np.full(100, np.pi), np.pi - 10.0 ** -rng.uniform(1, 12, 100),
+                             10.0 ** -rng.uniform(1, 14, 100), np.zeros(100)])
+    w = axes * angles[:, None]
+    ref = Rotation.from_rotvec(w).as_matrix()
+    R = so3_exp(w) if batch else np.stack([so3_exp(v) for v in w])
+    assert np.abs(R - ref).max() < 1e-14
+    logs = so3_log(ref) if batch else np.stack([so3_log(m) for m in ref])
+    assert np.abs(Rotation.from_rotvec(logs).as_matrix() - ref).max() < 1e-13
+    assert np.linalg.norm(logs, axis=1).max() <= np.pi + 1e-12
+    away = angles < 3.1
+    assert np.abs(logs[away] - Rotation.from_matrix(ref[away]).as_rotvec()).max() < 1e-12
+
+
 def test_so3_exp_log_round_trip_batched():
     w = rng.normal(size=(20, 3))
     w *= (np.pi - 1e-3) * rng.random((20, 1)) / np.linalg.norm(w, axis=1, keepdims=True)

@@ -49,9 +49,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from surftrack.geometry import rotation_angle_deg, se3, se3_inv, so3_exp
+from surftrack.geometry import rotation_angle_deg, se3, se3_inv, so3_exp, so3_log
 from surftrack.instruments.kinematics import JOINT_NAMES, JointState, rcm_base_pose
 from surftrack.instruments.library import Instrument
 
@@ -230,7 +229,7 @@ class _Problem:
         B = self.base(x)
         poses = self.instrument.forward(B, JointState(*self.joints(x)))
         T = np.stack([poses[n] for n in self.names])
-        rot = Rotation.from_matrix(np.swapaxes(T[:, :3, :3], 1, 2) @ self.R_obs).as_rotvec()
+        rot = so3_log(np.swapaxes(T[:, :3, :3], 1, 2) @ self.R_obs)
         r = np.concatenate([self.cfg.rotation_scale_mm * rot, T[:, :3, 3] - self.t_obs], axis=1) * self.sw
         out = [r.ravel()]
         if self.trocar is not None:
