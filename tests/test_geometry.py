@@ -273,3 +273,22 @@ def test_square_crop_box():
     # jitter: the centre moves by (dx, dy) x side, then the side scales by 1 + ds
     x0, y0, x1, y1 = square_crop_box((10.0, 20.0, 30.0, 10.0), 1.5, (0.1, -0.2, 0.5))
     assert np.allclose([(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0], [25 + 4.5, 25 - 9.0, 67.5, 67.5])
+
+
+def test_project_pose_jacobian_matches_central_differences():
+    """The analytic derivative of projected model points with respect to the trackers' pose step
+    (t + dt, R exp(dtheta)), against central differences of ``project_points``."""
+    from surftrack.geometry import project_pose_jacobian
+
+    r = np.random.default_rng(8)
+    K = np.array([[450.0, 0, 320], [0, 455.0, 250], [0, 0, 1]])
+    R, t = so3_exp(r.normal(size=3)), np.array([4.0, -6.0, 70.0])
+    X = r.normal(scale=8.0, size=(30, 3))
+    uv, J = project_pose_jacobian(K, R, t, X)
+    np.testing.assert_allclose(uv, project_points(K, X @ R.T + t), atol=1e-12)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        up = project_points(K, X @ (R @ so3_exp(d[3:])).T + t + d[:3])
+        dn = project_points(K, X @ (R @ so3_exp(-d[3:])).T + t - d[:3])
+        np.testing.assert_allclose(J[:, :, k], (up - dn) / 2e-6, rtol=1e-5, atol=1e-5)

@@ -37,6 +37,29 @@ def project_points(K: np.ndarray, points: np.ndarray) -> np.ndarray:
     return uv
 
 
+def project_pose_jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of model points (N, 3, mm) at the model-to-camera pose (R, t), and their derivatives
+    (N, 2, 6) with respect to a pose step ``(dt, dtheta)``: ``t' = t + dt`` (camera frame, mm),
+    ``R' = R exp(dtheta)`` (body rotation, rad), the trackers' convention. Skew in ``K`` is ignored in the
+    derivative (intrinsic matrices of video frames have none)."""
+    xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
+    Xc = xyz @ R.T + t
+    uv = project_points(K, Xc)
+    z = np.maximum(Xc[:, 2], 1e-6)
+    fx, fy = K[0, 0], K[1, 1]
+    P = np.zeros((len(xyz), 2, 3))
+    P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * Xc[:, 0] / z**2
+    P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / z**2
+    skew = np.zeros((len(xyz), 3, 3))  # [X]_x of each model point
+    x, y, w = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 0] = -w, y, w
+    skew[:, 1, 2], skew[:, 2, 0], skew[:, 2, 1] = -x, -y, x
+    dX = np.concatenate([np.broadcast_to(np.eye(3), (len(xyz), 3, 3)), -R @ skew], axis=2)  # dXc / d(dt, dtheta)
+    return uv, P @ dX
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """Intrinsics K (3x3), image size and optional OpenCV distortion coefficients."""

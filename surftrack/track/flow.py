@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from surftrack.geometry import project_points, rotation_angle_deg, se3, so3_exp, transform_points
+from surftrack.geometry import project_points, project_pose_jacobian, rotation_angle_deg, se3, transform_points
 
 LK_PARAMS = dict(winSize=(21, 21), maxLevel=3,
                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
@@ -173,19 +173,6 @@ class PnPResult:
     rms_px: float
 
 
-def _jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """d(pixels)/d(dt, dtheta) (2N, 6) for R' = R exp(dtheta), t' = t + dt (central differences)."""
-    J = np.empty((2 * len(xyz), 6))
-    for k in range(6):
-        d = np.zeros(6)
-        h = 1e-4 if k < 3 else 1e-6
-        d[k] = h
-        up = _pixels(K, R @ so3_exp(d[3:]), t + d[:3], xyz)
-        dn = _pixels(K, R @ so3_exp(-d[3:]), t - d[:3], xyz)
-        J[:, k] = ((up - dn) / (2 * h)).reshape(-1)
-    return J
-
-
 def pnp_measurement(pts: TrackPoints, K: np.ndarray, R0: np.ndarray, t0: np.ndarray, inlier_px: float = 3.0,
                     min_points: int = 6, noise_floor_px: float = 0.5) -> PnPResult | None:
     """Pose of the part from tracked 2D-3D pairs, starting at (R0, t0) (the predicted pose): an iterative
@@ -210,7 +197,7 @@ def pnp_measurement(pts: TrackPoints, K: np.ndarray, R0: np.ndarray, t0: np.ndar
         if inl.sum() < min_points:
             return None
     rms = float(np.sqrt(np.mean(err[inl] ** 2)))
-    J = _jacobian(K, R, t, obj[inl])
+    J = project_pose_jacobian(K, R, t, obj[inl])[1].reshape(-1, 6)
     sigma = max(rms, noise_floor_px)
     info = J.T @ J / sigma**2
     # Invert through the eigen-decomposition with a floor on the information: a direction the points do

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from surftrack.geometry import PinholeCamera, se3, se3_inv
+from surftrack.geometry import PinholeCamera, project_pose_jacobian, se3, se3_inv
 from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import Instrument, JointState
 from surftrack.instruments.kinematics import JOINT_NAMES
@@ -145,23 +145,6 @@ class ColorModel:
         i = self.index(rgb)
         f, b = self.fg[i], self.bg[i]
         return f / (f + b)
-
-
-def _jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(pixels (N, 2), d pixels / d (dt, dtheta) (N, 2, 6)) of model points ``xyz`` at (R, t)."""
-    Xc = xyz @ R.T + t
-    z = np.maximum(Xc[:, 2], 1e-6)
-    fx, fy = K[0, 0], K[1, 1]
-    uv = np.c_[fx * Xc[:, 0] / z + K[0, 2], fy * Xc[:, 1] / z + K[1, 2]]
-    P = np.zeros((len(xyz), 2, 3))
-    P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * Xc[:, 0] / z**2
-    P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / z**2
-    skew = np.zeros((len(xyz), 3, 3))
-    x, y, w = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 0] = -w, y, w
-    skew[:, 1, 2], skew[:, 2, 0], skew[:, 2, 1] = -x, -y, x
-    A = np.concatenate([np.broadcast_to(np.eye(3), (len(xyz), 3, 3)), -R @ skew], axis=2)  # dXc/d(dt, dtheta)
-    return uv, P @ A
 
 
 def _sample(image: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -300,7 +283,7 @@ class RegionTracker:
             rows, res, wts = [], [], []
             for n in names:
                 c = contours[n]
-                uv, Jp = _jacobian(self.K, *poses[n], c.xyz)
+                uv, Jp = project_pose_jacobian(self.K, *poses[n], c.xyz)
                 mu, var, valid, _ = self._lines(image, self.colors[self.groups[n]], uv, c.normal, scale)
                 rows.append(np.einsum("ni,nij,jk->nk", c.normal, Jp, D[n])[valid])
                 res.append((mu - c.edge_offset)[valid])
@@ -323,7 +306,7 @@ class RegionTracker:
         out = {}
         for n in names:
             c = contours[n]
-            uv, _ = _jacobian(self.K, *poses[n], c.xyz)
+            uv, _ = project_pose_jacobian(self.K, *poses[n], c.xyz)
             _, _, valid, pf = self._lines(image, self.colors[self.groups[n]], uv, c.normal, cfg.scales[-1])
             agree = np.where(self._s[None, :] < 0, pf > 0.5, pf < 0.5)[valid]
             cov = D[n] @ cov_x @ D[n].T
