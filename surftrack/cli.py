@@ -248,6 +248,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from surftrack.pose.preset import get_preset
 
     if args.suite is not None:
+        if args.by_cause:
+            raise CLIError("--by-cause bins one set (--data), not the suite")
         return _eval_suite(args)
     if args.data is None:
         raise CLIError("eval needs --data DATASET (or --suite)")
@@ -285,6 +287,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table = seed_table(results)
         out.with_suffix(".seeds.md").write_text(table)  # the per-seed outputs made its folder
         print(f"\nADD-10 per solver seed:\n{table}wrote {out.with_suffix('.seeds.md')}")
+    if args.by_cause:
+        from surftrack.pose.causes import cause_tables, instance_conditions
+
+        try:  # every seed's instances pooled: each bin's rate is then the mean over the seeds
+            conditions = [c for r in results for c in instance_conditions(r, args.data, args.split)]
+        except ValueError as e:
+            raise CLIError(f"--by-cause: {e}") from None
+        tables = cause_tables(conditions)
+        out.with_suffix(".causes.md").write_text(tables + "\n")
+        print(f"\nADD-10 (%) by condition, instances in brackets{', seeds pooled' if len(results) > 1 else ''}:\n"
+              f"{tables}\nwrote {out.with_suffix('.causes.md')}")
     return 0
 
 
@@ -502,6 +515,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "made in --suite-dir on first use; one table per part and set, mean of solver seeds 0-2")
     ev.add_argument("--suite-dir", default="data/suite", help="where the suite's sets live (default: data/suite)")
     ev.add_argument("--split", default="test", help="split folder to evaluate (default: test)")
+    ev.add_argument("--by-cause", action="store_true",
+                    help="also bin ADD-10 by each instance's depth, visible box size, visible fraction and joint "
+                         "angles (sets made by `surftrack synth`), to see where the estimator fails; writes "
+                         "<out stem>.causes.md")
     ev.add_argument("--out", default="eval.json", help="results JSON; .md, .bop.csv and .png go next to it "
                     "(default: eval.json)")
     ev.add_argument("--preset", default="accurate", choices=PRESET_NAMES, help="estimator preset (default: "

@@ -351,3 +351,33 @@ sets:
     assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "bad.yaml" in err and "sed" in err
+
+
+def test_eval_by_cause_bins_every_instance(tiny, tmp_path, capsys):
+    """`eval --by-cause`: per condition one row for all parts and one per part, the instance counts of a
+    row adding up to the instances evaluated; a set without synthesis records is one line, exit 2."""
+    import re
+    import shutil
+
+    from surftrack.cli import main
+
+    root, ckpt = tiny
+    out = tmp_path / "e.json"
+    assert main(["eval", "--data", str(root), "--split", "train", "--model", str(ckpt), "--preset", "fast",
+                 "--max-images", "2", "--by-cause", "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    n = json.loads(out.read_text())["n_instances"]
+    tables = out.with_suffix(".causes.md").read_text()
+    assert tables.strip() in text
+    for title in ("depth z (mm)", "visible box side (px)", "visible fraction", "|roll| (deg)", "|pitch| (deg)"):
+        row = next(line for line in tables.splitlines() if line.startswith("| all parts") and
+                   tables.splitlines()[tables.splitlines().index(line) - 2].startswith(f"| {title} |"))
+        assert sum(int(c) for c in re.findall(r"\((\d+)\)", row)) == n, (title, row)
+    bare = tmp_path / "bare"
+    shutil.copytree(root, bare)
+    for rec in bare.rglob("records"):
+        shutil.rmtree(rec)
+    assert main(["eval", "--data", str(bare), "--split", "train", "--model", str(ckpt), "--preset", "fast",
+                 "--max-images", "1", "--by-cause", "--out", str(tmp_path / "b.json"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "records" in err and "--by-cause" in err

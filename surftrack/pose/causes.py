@@ -1,0 +1,85 @@
+"""Where the estimator fails: an evaluation's ADD-10 binned by the conditions of each instance.
+
+A synthetic set made by ``surftrack synth`` records, per instance, the instrument's joint angles
+(``records/*.json``) next to BOP's visibility and boxes (``scene_gt_info.json``). Binning the per-instance
+results of :func:`~surftrack.pose.evaluate.evaluate` by depth, visible box size, visible fraction and
+each joint separates the candidate causes of failure (small far parts, occlusion, strong pitch or yaw,
+a tool rolled away from what the model was trained on) on one set; a set made to isolate one cause then
+confirms it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: (title, key, bin edges) of the tables :func:`cause_tables` prints.
+BINS: tuple[tuple[str, str, tuple[float, ...]], ...] = (
+    ("depth z (mm)", "z", (0, 60, 80, 100, 130, np.inf)),
+    ("visible box side (px)", "side", (0, 40, 60, 90, 140, np.inf)),
+    ("visible fraction", "visib", (0, 0.5, 0.75, 0.9, 1)),
+    ("|roll| (deg)", "roll", (0, 30, 60, 120, 180)),
+    ("|pitch| (deg)", "pitch", (0, 20, 40, 60, 90)),
+    ("|yaw| (deg)", "yaw", (0, 20, 40, 60, 90)),
+)
+
+
+@dataclass(frozen=True)
+class InstanceConditions:
+    """One evaluated instance: its part label, whether ADD-10 (SurgRIPE diameter) holds, and its
+    conditions: depth ``z`` (mm), the visible box's longer side (px), visible fraction and |joint| (deg)."""
+
+    part: str
+    add10: bool
+    values: Mapping[str, float]
+
+
+def instance_conditions(result: Mapping, data_dir: str | Path, split: str = "test") -> list[InstanceConditions]:
+    """Join an evaluation result (``evaluate``'s dict or its JSON) with the set's records. Raises
+    ``ValueError`` naming the file when the set has no per-image records (not made by ``surftrack synth``)."""
+    root = Path(data_dir) / split
+    out, info, recs = [], {}, {}
+    for r in result["instances"]:
+        scene = root / f"{int(r['scene_id']):06d}"
+        rec_path = scene / "records" / f"{int(r['im_id']):06d}.json"
+        if rec_path not in recs:
+            if not rec_path.is_file():
+                raise ValueError(f"{rec_path}: no such record (the set was not made by `surftrack synth`)")
+            recs[rec_path] = json.loads(rec_path.read_text())
+        if scene not in info:
+            info[scene] = json.loads((scene / "scene_gt_info.json").read_text())
+        gt = recs[rec_path]["scene_gt"][int(r["gt_index"])]
+        box = info[scene][str(int(r["im_id"]))][int(r["gt_index"])]["bbox_visib"]
+        values = {"z": float(gt["cam_t_m2c"][2]), "side": float(max(box[2], box[3])),
+                  "visib": float(r["visib_fract"])}
+        values.update({k: abs(float(v)) for k, v in (gt.get("joints_deg") or {}).items()})
+        out.append(InstanceConditions(str(r["part"]), bool(r["add10_surgripe"]), values))
+    return out
+
+
+def cause_tables(conditions: Sequence[InstanceConditions], bins=BINS) -> str:
+    """Markdown: per condition, ADD-10 (%) and the instance count per bin, for all parts and per part.
+    Bins are [lo, hi); the last one also takes what lies beyond."""
+    parts = sorted({c.part for c in conditions})
+    lines = [f"{len(conditions)} instances, ADD-10 {100 * np.mean([c.add10 for c in conditions]):.1f} %"
+             if conditions else "no instances", ""]
+    for title, key, edges in bins:
+        have = [c for c in conditions if key in c.values]
+        if not have:
+            continue
+        heads = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}" for lo, hi in zip(edges[:-1], edges[1:])]
+        lines += [f"| {title} | " + " | ".join(heads) + " |", "|---|" + "---|" * len(heads)]
+        for part in ["all parts", *parts]:
+            sel = [c for c in have if part == "all parts" or c.part == part]
+            cells = []
+            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+                last = k == len(edges) - 2  # the last bin holds its upper edge (a fraction of 1, 180 deg)
+                ok = [c.add10 for c in sel if lo <= c.values[key] < hi or (last and c.values[key] >= hi)]
+                cells.append(f"{100 * np.mean(ok):.0f} ({len(ok)})" if ok else "-")
+            lines.append(f"| {part} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
