@@ -1,7 +1,7 @@
 """Where the estimator fails: an evaluation's ADD-10 binned by the conditions of each instance.
 
 A synthetic set made by ``surftrack synth`` records, per instance, the instrument's joint angles
-(``records/*.json``) next to BOP's visibility and boxes (``scene_gt_info.json``). Binning the per-instance
+(``scene_gt.json``'s ``joints_deg``) next to BOP's visibility and boxes. Binning the per-instance
 results of :func:`~surftrack.pose.evaluate.evaluate` by depth, visible box size, visible fraction and
 each joint separates the candidate causes of failure (small far parts, occlusion, strong pitch or yaw,
 a tool rolled away from what the model was trained on) on one set; a set made to isolate one cause then
@@ -10,7 +10,6 @@ confirms it.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,24 +38,19 @@ class InstanceConditions:
 
 
 def instance_conditions(result: Mapping, data_dir: str | Path, split: str = "test") -> list[InstanceConditions]:
-    """Join an evaluation result (``evaluate``'s dict or its JSON) with the set's records. Raises
-    ``ValueError`` naming the file when the set has no per-image records (not made by ``surftrack synth``)."""
-    root = Path(data_dir) / split
-    out, info, recs = [], {}, {}
+    """Join an evaluation result (``evaluate``'s dict or its JSON) with the set's ground truth (read by
+    :class:`~surftrack.data.BopDataset`): depth, visible box, visible fraction, and the joint angles a
+    set made by ``surftrack synth`` records with each instance (other BOP sets get no joint bins)."""
+    from surftrack.data.bop import BopDataset
+
+    bop = BopDataset(data_dir, split, min_visib_fract=0.0, min_px_visib=0, load_models_now=False)
+    gt = {(i.scene_id, i.im_id, i.gt_index): i for i in bop.instances}
+    out = []
     for r in result["instances"]:
-        scene = root / f"{int(r['scene_id']):06d}"
-        rec_path = scene / "records" / f"{int(r['im_id']):06d}.json"
-        if rec_path not in recs:
-            if not rec_path.is_file():
-                raise ValueError(f"{rec_path}: no such record (the set was not made by `surftrack synth`)")
-            recs[rec_path] = json.loads(rec_path.read_text())
-        if scene not in info:
-            info[scene] = json.loads((scene / "scene_gt_info.json").read_text())
-        gt = recs[rec_path]["scene_gt"][int(r["gt_index"])]
-        box = info[scene][str(int(r["im_id"]))][int(r["gt_index"])]["bbox_visib"]
-        values = {"z": float(gt["cam_t_m2c"][2]), "side": float(max(box[2], box[3])),
-                  "visib": float(r["visib_fract"])}
-        values.update({k: abs(float(v)) for k, v in (gt.get("joints_deg") or {}).items()})
+        inst = gt[(int(r["scene_id"]), int(r["im_id"]), int(r["gt_index"]))]
+        values = {"z": float(inst.t[2]), "side": float(max(inst.bbox_visib[2], inst.bbox_visib[3])),
+                  "visib": float(inst.visib_fract)}
+        values.update({k: abs(float(v)) for k, v in (inst.extra.get("joints_deg") or {}).items()})
         out.append(InstanceConditions(str(r["part"]), bool(r["add10_surgripe"]), values))
     return out
 
