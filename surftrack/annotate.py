@@ -267,6 +267,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
         outputs["joints_csv"] = str(opts.joints_csv)
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
         writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
+        outputs_open.callback(tracker.close)
         sinks: list[FrameSink] = [McapSink(writer, specs, cam.K, images=opts.mcap_images)]
         if opts.overlay is not None:
             from surftrack.io.overlay import OverlayWriter

@@ -89,8 +89,7 @@ def test_region_fit_converges_from_a_perturbed_pose(scene):
     for n in lnd.parts:
         assert after[n][1] < 0.5 * before[n][1] and after[n][1] < 1.0, (n, before[n], after[n])
         assert after[n][0] < 0.6 * before[n][0], (n, before[n], after[n])
-    # (a thin jaw scores lower: its inner line samples cross it to the background beyond)
-    assert all(r.agreement > 0.8 for r in res.values()), {n: r.agreement for n, r in res.items()}
+    assert all(r.agreement > 0.9 for r in res.values()), {n: r.agreement for n, r in res.items()}
     # the covariance is honest about the shaft: its roll is far less certain than its axis direction
     var_rot = np.linalg.eigvalsh(res["shaft"].cov[3:, 3:])
     assert var_rot[-1] > 10 * var_rot[0]

@@ -40,6 +40,7 @@ which keeps the link.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -99,6 +100,7 @@ class KalmanConfig:
         return np.diag([self.meas_pos_std_mm**2] * 3 + [r**2] * 3)
 
 
+@functools.lru_cache(maxsize=8)
 def _chi2_999(dof: int) -> float:
     """chi2 quantile at 99.9 % for ``dof`` degrees of freedom."""
     from scipy.stats import chi2
@@ -341,7 +343,9 @@ class PoseKalman:
         ``basis`` (m x 6): fuse only these m combinations of the pose (position mm, body rotation rad),
         ``meas_cov`` then being their m x m covariance: a measurement that sees some directions of the
         pose and not others (a silhouette: the lateral position, hardly the depth) claims nothing about
-        the rest. The gate is then chi2 with m degrees of freedom at the same tail probability."""
+        the rest. The gate ``gate_chi2`` is then scaled by chi2(m) / chi2(6), both at 99.9 %."""
+        if basis is not None and meas_cov is None:
+            raise ValueError("a measurement of some pose directions (basis) needs their covariance")
         meas_cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
         if not (np.isfinite(R_meas).all() and np.isfinite(t_meas).all() and np.isfinite(meas_cov).all()):
             self.rejections_in_a_row += 1  # a non-finite measurement is never fused, gated or not

@@ -46,9 +46,11 @@ class RegionConfig:
     the first catches motions of ``line_half * scales[0]`` px). ``alpha``, ``slope``: the smoothed step's
     amplitude and slope (samples), as ICG's defaults. ``max_points``: contour points per part.
     ``min_points``: lines a part needs for a measurement. ``var_floor_px``: the smallest line variance
-    (px^2); ``inflate``: the covariance's factor for correlated lines. ``learn_rate``: how fast the colour
-    histograms follow the image (per frame). ``occlusion_px``: contour points this close to another
-    instrument are skipped."""
+    (px^2); ``inflate``: the covariance's factor for correlated lines. ``robust_px``: the Cauchy scale of
+    a line's residual (px at 1 px spacing), beyond which a line's pull fades. ``occlusion_px``: contour
+    points this close to another instrument are skipped. ``max_std_mm`` / ``max_std_deg``: the units in
+    which the lines' information is inverted (what they pin better than these is what the tracker fuses,
+    :meth:`RegionResult.observed`)."""
 
     bins: int = 16
     line_half: int = 8
@@ -59,9 +61,16 @@ class RegionConfig:
     min_points: int = 12
     var_floor_px: float = 1.0
     inflate: float = 3.0
-    learn_rate: float = 0.2
     occlusion_px: int = 3
     robust_px: float = 1.5
+    max_std_mm: float = 1.0
+    max_std_deg: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.bins not in (2, 4, 8, 16, 32, 64, 128, 256):
+            raise ValueError(f"bins must be a power of two up to 256, got {self.bins}")
+        if self.line_half < 4 or not self.scales or min(self.scales) < 1:
+            raise ValueError("line_half must be >= 4 and scales positive integers")
 
 
 @dataclass
@@ -183,7 +192,9 @@ class RegionTracker:
         # smoothed-step values for every (candidate contour position, sample) pair, shared by all lines
         L = self.cfg.line_half
         self._s = np.arange(-L, L + 1, dtype=np.float64)
-        self._d = np.arange(-L + 2, L - 1, dtype=np.float64) - 0.5
+        # candidate edge positions, symmetric about +0.5 (between the last pixel inside and the first
+        # outside), so a line that sees nothing pulls neither way
+        self._d = np.arange(-L + 2, L - 1, dtype=np.float64) + 0.5
         x = self._s[None, :] - self._d[:, None]
         self._hf = 0.5 - 0.5 * self.cfg.alpha * np.tanh(x / (2.0 * self.cfg.slope))
 
@@ -214,7 +225,9 @@ class RegionTracker:
             mask = group == gi
             masks[gname] = mask
             m8 = mask.astype(np.uint8)
-            edge = mask & (cv2.erode(m8, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) == 0)
+            # a contour pixel has a 4-neighbour outside (what Contour.edge_offset models)
+            edge = mask & (cv2.erode(m8, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+                                     borderType=cv2.BORDER_REPLICATE) == 0)
             others = ((group != gi) & (group > 0)).astype(np.uint8)
             if others.any():
                 edge &= cv2.dilate(others, kernel) == 0
@@ -255,11 +268,14 @@ class RegionTracker:
         var = (p * (self._d[None] - mu[:, None]) ** 2).sum(axis=1)
         return mu * scale, var * scale**2, valid, pf
 
-    def learn(self, image: np.ndarray, group: str, mask: np.ndarray, band_px: int = 12, rate: float = 1.0) -> None:
-        """Update an instrument's colour model from its silhouette ``mask`` (foreground) and a band of
-        ``band_px`` around it (background) in ``image``."""
+    def learn(self, image: np.ndarray, group: str, mask: np.ndarray, band_px: int = 12, gap_px: int = 2,
+              rate: float = 1.0) -> None:
+        """Update an instrument's colour model from its silhouette ``mask`` (foreground, less its edge
+        pixels) and a band of ``band_px`` around it (background) from ``gap_px`` out, in ``image``: a mask
+        off by a pixel or two then mixes little of one side into the other."""
         m8 = mask.astype(np.uint8)
-        ring = (cv2.dilate(m8, np.ones((2 * band_px + 1,) * 2, np.uint8)) > 0) & ~mask
+        near = cv2.dilate(m8, np.ones((2 * gap_px + 1,) * 2, np.uint8)) > 0
+        ring = (cv2.dilate(m8, np.ones((2 * band_px + 1,) * 2, np.uint8)) > 0) & ~near
         inner = cv2.erode(m8, np.ones((3, 3), np.uint8)) > 0
         self.colors[group].update(image[inner], image[ring], rate)
 
@@ -277,7 +293,6 @@ class RegionTracker:
             return {}
         info0 = np.linalg.inv(prior_cov)
         x = np.zeros(model.size)  # the MAP steps from the prediction
-        H = None
         for scale in cfg.scales:
             poses, D = model.poses(x), model.derivatives(x)
             rows, res, wts = [], [], []
@@ -295,20 +310,26 @@ class RegionTracker:
             # vignette) far from where the others put the contour loses its pull
             w = w / (1.0 + (r / (cfg.robust_px * scale)) ** 2)
             H = (a * w[:, None]).T @ a / cfg.inflate
-            g = a.T @ (w * r) / cfg.inflate - info0 @ x
-            x = x + np.linalg.solve(H + info0, g)
+            g_lines = a.T @ (w * r) / cfg.inflate
+            x = x + np.linalg.solve(H + info0, g_lines - info0 @ x)
         model.solution = x
-        # Invert the lines' information with a floor: a direction they do not see (a cylinder's roll)
-        # gets a huge variance, never pinv's zero.
-        ev, V = np.linalg.eigh(0.5 * (H + H.T))
-        cov_x = V @ np.diag(1.0 / np.maximum(ev, 1e-6)) @ V.T
+        # The pose reported is the MAP estimate, its covariance the lines' alone: where the lines pin a
+        # direction (what the filter fuses, RegionResult.observed) their information dwarfs the
+        # prediction's and counting the prediction twice changes little; the lines' own solution instead
+        # (x_lin + H^-1 g_lines in those directions) held the seeded wrist of tests/test_track.py 9-11 deg
+        # off against 6-8 with the MAP. A direction the lines do not see (a cylinder's roll) gets a huge
+        # variance, never pinv's zero.
+        caps = np.r_[np.full(3, cfg.max_std_mm), np.full(model.size - 3, np.radians(cfg.max_std_deg))]
+        ev, V = np.linalg.eigh(0.5 * (H + H.T) * np.outer(caps, caps))
+        cov_x = np.outer(caps, caps) * (V @ np.diag(1.0 / np.maximum(ev, 1e-9)) @ V.T)
         poses, D = model.poses(x), model.derivatives(x)
         out = {}
         for n in names:
             c = contours[n]
             uv, _ = project_pose_jacobian(self.K, *poses[n], c.xyz)
             _, _, valid, pf = self._lines(image, self.colors[self.groups[n]], uv, c.normal, cfg.scales[-1])
-            agree = np.where(self._s[None, :] < 0, pf > 0.5, pf < 0.5)[valid]
+            # sample s = 0 is the last pixel inside the outline
+            agree = np.where(self._s[None, :] <= 0, pf > 0.5, pf < 0.5)[valid]
             cov = D[n] @ cov_x @ D[n].T
             out[n] = RegionResult(*poses[n], 0.5 * (cov + cov.T), int(valid.sum()),
                                   float(agree.mean()) if agree.size else 0.0)
