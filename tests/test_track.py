@@ -169,7 +169,7 @@ def test_an_instruments_parts_get_their_keyframes_together(clip, lnd_parts, tiny
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
     wrist = lnd_parts["wrist"]
     for kinematic in (True, False):
-        tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=2, kinematic=kinematic))
+        tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=2, kinematic=kinematic, region=False))
         for p in model.parts:
             tracker.set_pose(lnd_parts[p.name], *gt.pose(i - 2, lnd_parts[p.name])[:2], (i - 2) / 10.0)
         est.frame = i - 2
@@ -204,7 +204,7 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
 
     est = Hiding(model, gt, lnd_parts, 0.0)
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
-    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(kinematic=False, max_occluded=3))
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(kinematic=False, max_occluded=3, keyframe_every=1, region=False))
     for p in model.parts:
         tracker.set_pose(lnd_parts[p.name], *gt.pose(i - 1, lnd_parts[p.name])[:2], (i - 1) / 10.0)
     est.frame = i - 1
@@ -616,16 +616,18 @@ def test_confidence_falls_with_the_pose_covariance_and_a_rejected_estimate(lnd_p
     assert lost.settled(None, cfg) is lost
 
 
-def test_the_sparse_config_is_the_default_with_sparse_keyframes():
-    """configs/track/sparse.yaml repeats the default file: it may differ only in what makes it sparse."""
+def test_the_every_frame_config_is_the_default_without_the_region_measurement():
+    """configs/track/every_frame.yaml repeats the default file: it may differ only in what makes it run
+    the estimator on every frame; the default file and TrackConfig's defaults agree."""
     from surftrack.track import load_track_config
 
-    default, sparse = load_track_config().to_dict(), load_track_config("sparse").to_dict()
-    assert (sparse["keyframe_every"], sparse["kalman"]["accel_std_mm_s2"]) == (6, 60.0)
-    for d in (default, sparse):
+    default, every = load_track_config().to_dict(), load_track_config("every_frame").to_dict()
+    assert default == TrackConfig().to_dict()
+    assert (every["keyframe_every"], every["region"], default["keyframe_every"], default["region"]) == (1, False, 10, True)
+    for d in (default, every):
         d.pop("keyframe_every")
-        d["kalman"].pop("accel_std_mm_s2")
-    assert sparse == default
+        d.pop("region")
+    assert every == default
 
 
 def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):

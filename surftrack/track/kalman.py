@@ -60,7 +60,7 @@ class KalmanConfig:
       acceleration 1-25 mm/s^2) with occasional fast moves (p90 acceleration 180-410 mm/s^2, peaks
       ~1000). The white-noise acceleration level sets how much the filter and above all the smoother
       average: with ~3 mm estimator noise, 200 left smoothed path lengths 1.3-2x the truth; 30 suits an
-      estimate on every frame, 60 one every 6 frames (``configs/track/sparse.yaml``; tuning clip seed 3,
+      estimate on every frame, 60 one every 6 frames without measurements between (tuning clip seed 3,
       docs/results/2026-12-02-tracking.md). A fast move beyond it is caught by the gate
       (``max_rejections`` estimates in a row that disagree restart the pose).
     * ``ang_accel_std_rad_s2 = 3``: wrist / shaft roll reaches ~1-3 rad/s; 5 let the estimator's shaft roll

@@ -10,7 +10,7 @@ class Status(str, Enum):
 
     * ``init``: not seen yet (no usable box so far);
     * ``keyframe``: the estimator ran this frame and its pose was taken (fused into the filter);
-    * ``tracking``: a flow measurement was accepted by the filter;
+    * ``tracking``: a region (silhouette) or flow measurement was accepted by the filter;
     * ``predicted``: the filter carried the pose (no acceptable measurement this frame; smoothed runs
       interpolate it from the frames on both sides);
     * ``lost``: no pose (no box and nothing to track, the part left the image, or recovery failed).
