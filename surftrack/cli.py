@@ -553,7 +553,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
                     "preset's; 5: about 4x the keyframe time, better poses)")
-    tk.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
+    tk.add_argument("--config", help="tracking YAML or a name in configs/track: default (outlines between keyframes), "
+                                     "every_frame (the estimator on every frame)")
     tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
     tk.add_argument("--start", type=float, help="first second of video to track")
     tk.add_argument("--end", type=float, help="last second of video to track")
@@ -586,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--workers", type=int, help="videos tracked at once on a local Ray (default: the cores)")
     ba.add_argument("--force", action="store_true", help="redo videos an earlier run of the batch finished")
     ba.add_argument("--model", help="checkpoint (default: the bundled model)")
-    ba.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
+    ba.add_argument("--config", help="tracking YAML or a name in configs/track: default, every_frame")
     ba.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
     ba.add_argument("--causal", action="store_true", help="no smoothing with later frames (see track --causal)")
     ba.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
