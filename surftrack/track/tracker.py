@@ -27,9 +27,9 @@ import numpy as np
 import trimesh
 
 from surftrack.geometry import Box, project_points, se3, transform_points
-from surftrack.instruments import BUILTIN, InstrumentRegistry
+from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, JointState, joints_from_poses
 from surftrack.pose import PoseEstimator
-from surftrack.pose.kinematic import apply_kinematics, check_anchor
+from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_instrument, instrument_parts
 from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
@@ -196,14 +196,12 @@ class Tracker:
         self._region_floor = np.diag([self.cfg.region_floor_mm**2] * 3 + [np.radians(self.cfg.region_floor_deg)**2] * 3)
         self._region: RegionTracker | None = None
         self._region_specs = list(specs)
-        self._described: dict[str, object] = {}  # instrument key -> its Instrument (None: not described)
-        self._joints: dict[str, object] = {}  # instrument key -> last JointState the region fit found
+        self._described: dict[str, Instrument | None] = {}  # instrument key -> its description, if any
+        self._joints: dict[str, JointState] = {}  # instrument key -> the joints its last accepted fit found
 
     def _region_tracker(self) -> RegionTracker:
         """The region measurement's renderer and colour models, made on first use (a GL context)."""
         if self._region is None:
-            from surftrack.pose.kinematic import described_instrument, instrument_parts
-
             by_instrument = instrument_parts(self.estimator.model.parts)
             meshes, groups, attachments = {}, {}, {}
             for s in self._region_specs:
@@ -375,7 +373,7 @@ class Tracker:
         for group, mask in masks.items():
             # colours from the predicted silhouette, its edge left out (learn's margins): learning instead
             # from the line pixels next to each accepted outline (as ICG does) mixed the far side of thin
-            # jaws into the foreground and held the seeded wrist of tests/test_track.py 8 deg off, not 3
+            # jaws into the foreground and held the seeded wrist of tests/test_track.py 8 deg off, not 2.4
             rt.learn(frame_rgb, group, mask, rate=cfg.region_learn_rate)
         share = 1e3 * (time.perf_counter() - t0) / len(due)
         groups: dict[str, list[_Track]] = {}
@@ -414,8 +412,6 @@ class Tracker:
         by_part = {tr.spec.part: tr for tr in trs}
         pose_cov = lambda tr: PoseKalman.H @ tr.kf.covariance @ PoseKalman.H.T  # noqa: E731
         if inst is not None and inst.chain.order[0] in by_part:
-            from surftrack.instruments import JointState, joints_from_poses
-
             root = by_part[inst.chain.order[0]]
             posed = {p: se3(*tr.kf.pose) for p, tr in by_part.items()}
             q0 = joints_from_poses(inst, posed, self._joints.get(key, JointState()))
