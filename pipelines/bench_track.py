@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("keyframe_every", "preset", "views"):
         if getattr(args, key):
             cfg = cfg.replace(**{key: getattr(args, key)})
+    if args.keyframe_every:
+        cfg = cfg.replace(keyframe_max_s=0.0)  # frames, as asked (as the main command's --keyframe-every)
     if args.lag_s is not None:
         cfg = cfg.replace(smooth_lag_s=args.lag_s)
     if args.no_kinematic:
@@ -140,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     on_gpu = torch.device(args.device).type == "cuda"
     dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
     print(f"model {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), keyframe every "
-          f"{cfg.keyframe_every} frames at most, kinematic fit {'on' if cfg.kinematic else 'off'}, smoothing lag "
+          f"{cfg.keyframe_every} frames{f' and {cfg.keyframe_max_s:g} s' if cfg.keyframe_max_s else ''} at most, kinematic fit {'on' if cfg.kinematic else 'off'}, smoothing lag "
           f"{cfg.smooth_lag_s:g} s, parts {', '.join(parts)}, device {dev}")
 
     lnd = load_instrument("lnd")

@@ -225,7 +225,8 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)
     estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
                               crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
-    tracker = Tracker(estimator, cam.K, size, specs, opts.config, opts.instruments)
+    config = opts.config.for_fps(info.fps)  # the keyframe bound in seconds, as frames of this video
+    tracker = Tracker(estimator, cam.K, size, specs, config, opts.instruments)
     undistort = cam.undistorter()
     per_frame = _frame_boxes(doc, cam)
     det_times = {} if doc.get("meta", {}).get("converted_from") == "coco" else \
@@ -233,7 +234,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     half_frame = 0.5 / info.fps
 
     meta = {"video": str(video), "boxes": str(boxes), "camera": str(camera), "model": str(model_path),
-            "config": opts.config.to_dict(), "surftrack_version": __version__,
+            "config": config.to_dict(), "surftrack_version": __version__,
             "parts": {s.name: {"track_id": s.track_id, "obj_id": s.obj_id} for s in specs}}
     counts = {s.name: Counter() for s in specs}
     conf_sum = {s.name: 0.0 for s in specs}

@@ -333,7 +333,7 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
     if args.keyframe_every is not None:
         if args.keyframe_every < 1:
             raise CLIError(f"--keyframe-every must be >= 1, got {args.keyframe_every}")
-        cfg = cfg.replace(keyframe_every=args.keyframe_every)
+        cfg = cfg.replace(keyframe_every=args.keyframe_every, keyframe_max_s=0.0)  # frames, as asked
     if args.preset is not None:
         cfg = cfg.replace(preset=args.preset)
     if args.causal:
@@ -547,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(default: <video stem>.camera.json or camera.json beside the video)")
     tk.add_argument("--model", help="checkpoint (default: the bundled Large Needle Driver model)")
     tk.add_argument("-o", "--out", help="MCAP file (default: the video's name with .mcap; a folder for a folder)")
-    tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
+    tk.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts at most "
+                                                       "(default: 10, and 0.34 s of video)")
     tk.add_argument("--causal", action="store_true", help="write each frame's pose from the frames up to it "
                     "only (online use); by default poses are smoothed with the second after them too")
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")

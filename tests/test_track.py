@@ -662,3 +662,18 @@ def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):
     scored = [i for i in range(n) if max(gt.pose(i, lnd_parts[j])[2] for j in ("jaw_left", "jaw_right")) >= 100]
     dropped = score(drop=scored[len(scored) // 2])
     assert dropped["frames"] == exact["frames"] - 1 and dropped["path_gt_mm"] < exact["path_gt_mm"]
+
+
+def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():
+    """``keyframe_max_s`` lowers ``keyframe_every`` to that much video where it is tighter; 0 keeps the
+    frames; the main command's ``--keyframe-every`` means frames."""
+    from surftrack.cli import _track_config, build_parser
+
+    cfg = TrackConfig(keyframe_every=10, keyframe_max_s=0.34)
+    assert [cfg.for_fps(f).keyframe_every for f in (60.0, 30.0, 25.0, 15.0, 5.0, 1.0)] == [10, 10, 8, 5, 2, 1]
+    assert cfg.replace(keyframe_max_s=0.0).for_fps(15.0).keyframe_every == 10
+    assert cfg.for_fps(0.0) is cfg  # unknown frame rate: frames only
+    with pytest.raises(ValueError, match="keyframe_max_s"):
+        TrackConfig(keyframe_max_s=-1.0)
+    args = build_parser().parse_args(["track", "v.mp4", "--boxes", "d.json", "--keyframe-every", "30"])
+    assert _track_config(args).for_fps(30.0).keyframe_every == 30
