@@ -10,12 +10,13 @@ DLR-RM/3DObjectTracking, re-derived here, not copied), each frame:
    background, each with its 3D point on the part and the silhouette's outward normal in the image;
    contour pixels next to another instrument are skipped (an occlusion edge is not a colour edge);
 2. along a short line through each contour point, normal to the silhouette, every pixel's colour gives a
-   foreground probability from the instrument's colour histograms (foreground / background, updated
-   from the lines each frame); the contour's position along the line has the posterior of a smoothed
-   step model (a tanh of amplitude ``alpha`` and slope ``slope``), whose mean and variance are the
-   line's measurement;
-3. a few Gauss-Newton steps (coarse to fine line scales) move the part's 6-DoF pose so its projected
-   contour points land on those means, each weighted by its variance.
+   foreground probability from the instrument's colour histograms (foreground / background, learnt from
+   the rendered silhouette and a band around it, :meth:`RegionTracker.learn`); the contour's position
+   along the line has the posterior of a smoothed step model (a tanh of amplitude ``alpha`` and slope
+   ``slope``), whose mean and variance are the line's measurement;
+3. a few Gauss-Newton steps (coarse to fine line scales) move the parameters of a :class:`PoseModel` (one
+   free part's pose, or an instrument's root pose and joints, :class:`ArticulatedModel`) so the projected
+   contour points land on those means, each weighted by its variance, regularised by the prediction.
 
 The result is a pose measurement with a covariance (the inverse Gauss-Newton Hessian, inflated because
 neighbouring lines share pixels and the model's contour is approximate): directions the silhouette does
