@@ -56,7 +56,7 @@ class TrackConfig:
     than ``region_max_std_mm`` / ``region_max_std_deg`` are fused (a silhouette sees the lateral position,
     not the depth), with ``region_floor_mm`` / ``region_floor_deg`` added. With a keyframe at least every
     10 frames it is the default: on five held-out clips it scored above the estimator on every frame on
-    average for every part, at 1.3-1.8x its speed, and below it on two of them (``configs/track/
+    average for every part, at 1.1-1.8x its speed, and below it on two of them (``configs/track/
     every_frame.yaml`` keeps that mode; docs/results/2026-12-03-region.md). It needs a keyframe cadence
     above 1: a part due for the estimator is not measured by its silhouette on that frame.
 
