@@ -20,16 +20,18 @@ from surftrack.geometry.transforms import (
     se3_inv,
     se3_log,
     se3_split,
+    skew,
     slerp,
     so3_exp,
     so3_log,
+    so3_right_jacobian,
     transform_points,
 )
 
 __all__ = [
     "Box", "PinholeCamera", "box_from_bop", "crop_affine", "crop_with_rotation", "interpolate_pose",
     "matrix_from_quat_xyzw", "pose_in_crop", "project_points", "project_pose_jacobian", "quat_xyzw_from_matrix", "rotation_about",
-    "rotation_angle_deg", "se3", "se3_compose", "se3_exp", "se3_inv", "se3_log", "se3_split", "slerp",
-    "so3_exp", "so3_log", "square_crop_box", "transform_points", "warp_image", "xywh_from_xyxy",
+    "rotation_angle_deg", "se3", "se3_compose", "se3_exp", "se3_inv", "se3_log", "se3_split", "skew", "slerp",
+    "so3_exp", "so3_log", "so3_right_jacobian", "square_crop_box", "transform_points", "warp_image", "xywh_from_xyxy",
     "xyxy_from_xywh",
 ]

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from surftrack.geometry.boxes import Box
+from surftrack.geometry.transforms import skew
 
 
 def project_points(K: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -52,11 +53,7 @@ def project_pose_jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: n
     P = np.zeros((len(xyz), 2, 3))
     P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * Xc[:, 0] / z**2
     P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / z**2
-    skew = np.zeros((len(xyz), 3, 3))  # [X]_x of each model point
-    x, y, w = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 0] = -w, y, w
-    skew[:, 1, 2], skew[:, 2, 0], skew[:, 2, 1] = -x, -y, x
-    dX = np.concatenate([np.broadcast_to(np.eye(3), (len(xyz), 3, 3)), -R @ skew], axis=2)  # dXc / d(dt, dtheta)
+    dX = np.concatenate([np.broadcast_to(np.eye(3), (len(xyz), 3, 3)), -R @ skew(xyz)], axis=2)  # dXc / d(dt, dtheta)
     return uv, P @ dX
 
 

@@ -18,8 +18,9 @@ from scipy.spatial.transform import Rotation, Slerp
 _EPS = 1e-9
 
 
-def _hat(v: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices (N, 3, 3) of vectors (N, 3)."""
+def skew(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices (..., 3, 3) of vectors (..., 3): ``skew(v) @ x == cross(v, x)``."""
+    v = np.asarray(v, dtype=np.float64)
     S = np.zeros(v.shape[:-1] + (3, 3))
     S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
     S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
@@ -47,9 +48,19 @@ def so3_exp(rotvec: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, th)
     a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)  # sin(t) / t
     b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / safe**2)  # (1 - cos(t)) / t^2
-    S = _hat(v)
+    S = skew(v)
     R = np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
     return R.reshape(rv.shape[:-1] + (3, 3))
+
+
+def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3)'s right Jacobian (3, 3) at ``phi`` (3,): ``exp(phi + d) = exp(phi) exp(J_r(phi) d)`` to first
+    order."""
+    th = float(np.linalg.norm(phi))
+    S = skew(phi)
+    if th < 1e-6:
+        return np.eye(3) - 0.5 * S
+    return np.eye(3) - (1 - np.cos(th)) / th**2 * S + (th - np.sin(th)) / th**3 * S @ S
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:

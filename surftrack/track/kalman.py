@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from surftrack.geometry.transforms import so3_exp, so3_log
+from surftrack.geometry.transforms import skew, so3_exp, so3_log
 
 CHI2_6DOF_999 = 22.46
 
@@ -106,10 +106,6 @@ def _chi2_999(dof: int) -> float:
     from scipy.stats import chi2
 
     return float(chi2.ppf(0.999, dof))
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
 def _block_q(dt: float, q: float) -> np.ndarray:
@@ -366,7 +362,7 @@ class PoseKalman:
         x[6:9] = 0.0
         self.kf.x = x.reshape(12, 1)
         G = np.eye(12)
-        G[6:9, 6:9] = np.eye(3) - 0.5 * _skew(dtheta)
+        G[6:9, 6:9] = np.eye(3) - 0.5 * skew(dtheta)
         P = G @ self.kf.P @ G.T
         self.kf.P = 0.5 * (P + P.T)
         self.rejections_in_a_row = 0

@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 
 from surftrack.geometry import PinholeCamera, project_pose_jacobian, se3, se3_inv
-from surftrack.geometry.transforms import so3_exp, so3_log
+from surftrack.geometry.transforms import skew, so3_exp, so3_log, so3_right_jacobian
 from surftrack.instruments import Instrument, JointState
 from surftrack.instruments.kinematics import JOINT_NAMES
 from surftrack.render.renderer import Renderer
@@ -188,7 +188,7 @@ class RegionTracker:
             for att in (attachments or {}).get(name, ()):
                 ids.append(self.renderer.add_mesh(att, amodal=False))
             self.ids[name] = ids
-        self.owner = {i: name for name, ids in self.ids.items() for i in ids}
+        self._max_id = max((i for ids in self.ids.values() for i in ids), default=0)
         self.colors: dict[str, ColorModel] = {g: ColorModel(self.cfg.bins) for g in set(self.groups.values())}
         # smoothed-step values for every (candidate contour position, sample) pair, shared by all lines
         L = self.cfg.line_half
@@ -209,7 +209,7 @@ class RegionTracker:
         inst_poses = {i: se3(*poses[name]) for name in poses for i in self.ids[name]}
         res = self.renderer.render(self.camera, inst_poses, modalities=("instance", "xyz"))
         ids, xyz = res.instance, res.xyz
-        owner = np.zeros(max(self.owner) + 1, np.int64)
+        owner = np.zeros(self._max_id + 1, np.int64)
         names = sorted(poses)
         for k, name in enumerate(names):
             for i in self.ids[name]:
@@ -354,7 +354,7 @@ class PoseModel:
 
     def derivatives(self, x: np.ndarray) -> dict[str, np.ndarray]:
         D = np.eye(6)
-        D[3:, 3:] = _right_jacobian(x[3:6])
+        D[3:, 3:] = so3_right_jacobian(x[3:6])
         return {self.parts[0]: D}
 
 
@@ -401,7 +401,7 @@ class ArticulatedModel(PoseModel):
         """The root's rows are exact; the joints' columns by central differences."""
         base = self.poses(x)
         R_root = self.R0 @ so3_exp(x[3:6])
-        Jr = _right_jacobian(x[3:6])  # d(root body rotation) / d(its parameters) away from x = 0
+        Jr = so3_right_jacobian(x[3:6])  # d(root body rotation) / d(its parameters) away from x = 0
         D = {}
         for n, (R, t) in base.items():
             d = np.zeros((6, self.size))
@@ -409,7 +409,7 @@ class ArticulatedModel(PoseModel):
             d[3:, 3:6] = R.T @ R_root @ Jr  # a root body rotation, in this part's body frame
             # and the part's lever arm: t_n = t_root + R_root r  ->  dt_n = -R_root [r]_x dtheta
             r = R_root.T @ (t - base[self.parts[0]][1])
-            d[:3, 3:6] = -R_root @ _skew(r) @ Jr
+            d[:3, 3:6] = -R_root @ skew(r) @ Jr
             D[n] = d
         for j in range(6, self.size):
             e = np.zeros(self.size)
@@ -419,16 +419,3 @@ class ArticulatedModel(PoseModel):
                 D[n][:3, j] = (up[n][1] - dn[n][1]) / (2 * h)
                 D[n][3:, j] = (so3_log(R.T @ up[n][0]) - so3_log(R.T @ dn[n][0])) / (2 * h)
         return D
-
-
-def _right_jacobian(phi: np.ndarray) -> np.ndarray:
-    """SO(3)'s right Jacobian: exp(phi + d) = exp(phi) exp(J_r(phi) d) to first order."""
-    th = float(np.linalg.norm(phi))
-    S = _skew(phi)
-    if th < 1e-6:
-        return np.eye(3) - 0.5 * S
-    return np.eye(3) - (1 - np.cos(th)) / th**2 * S + (th - np.sin(th)) / th**3 * S @ S
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
