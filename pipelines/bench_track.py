@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.synth.clip import ClipConfig, make_clip
-    from surftrack.track import load_track_config
+    from surftrack.track import filter_steps, load_track_config
     from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary, format_tip_summary
     from surftrack.track.smoother import LagSmoother
 
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
 
         def score_smoothed(ready):
             for (index, time_s, states), steps in ready:
-                smoothed.add_frame(index, time_s, [s.settled(steps.get(s.spec.name), cfg) for s in states])
+                smoothed.add_frame(index, time_s, [s.settle(steps, cfg) for s in states])
 
         def on_frame(index, time_s, states):
             nonlocal smooth_s
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
                 if "estimator" in s.info:
                     est_calls[s.info["estimator"]] += 1
             t0 = time.perf_counter()
-            ready = smoother.push((index, time_s, states), {s.spec.name: s.filter_step for s in states})
+            ready = smoother.push((index, time_s, states), filter_steps(states))
             smooth_s += time.perf_counter() - t0
             score_smoothed(ready)
 

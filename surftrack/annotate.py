@@ -30,7 +30,7 @@ from surftrack import __version__
 from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.io.sinks import FrameSink, JointsSink, McapSink, OverlaySink, TumSink
 from surftrack.io.video import read_video_frames
-from surftrack.track import PartSpec, PartState, TrackConfig, Tracker
+from surftrack.track import PartSpec, PartState, TrackConfig, Tracker, filter_steps
 from surftrack.track.smoother import LagSmoother
 from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
 
@@ -298,7 +298,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             unwritten.extend(ready)
             while unwritten:
                 (index, t_s, frame, states), steps = unwritten.popleft()
-                states = [s.settled(steps.get(s.spec.name), opts.config) for s in states]
+                states = [s.settle(steps, opts.config) for s in states]
                 for s in states:
                     counts[s.spec.name][s.status] += 1
                     conf_sum[s.spec.name] += s.confidence
@@ -337,7 +337,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     states = tracker.step(frame, t_s, per_frame.get(index))
                     timing["track_s"] += time.perf_counter() - t0
                     release(smoother.push((index, t_s, frame if keep_frames else None, states),
-                                          {s.spec.name: s.filter_step for s in states}))
+                                          filter_steps(states)))
                     bar.update(1)
                     bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
                 else:

@@ -24,7 +24,7 @@ def write_log(path):
             t = i / FPS
             w.pose("shaft", t, R, np.array([10.0, -5.0, 80.0]) + SHAFT_V * t)
             w.status(t, "shaft", "keyframe" if i % 2 == 0 else "tracking", 0.9,  # both are measured poses
-                     {"position_std_mm": [1.0, 2.0, 2.0]})
+                     {"position_std_mm": [1.0, 2.0, 2.0], "speed_std_mm_s": 1.0 + (i % 2)})
             w.pose("tip", t, R, np.array([10.0 * t**3, 0.0, 70.0]))  # jerk 60 mm/s^3
             jaw = np.array([0.0, 0.0, 60.0]) + JAW_V * t + (100.0 if i >= 10 else 0.0)
             if i != 8:
@@ -32,6 +32,8 @@ def write_log(path):
             w.status(t, "jaw", "lost" if i in LOST else "tracking", 0.1 if i in LOST else 0.8)
             w.joint_states(t, "large_needle_driver", ["roll", "opening"],
                            [0.0, math.radians(20.0 + 10.0 * math.sin(2 * math.pi * 0.5 * t))])
+            w.joint_states(t, "large_needle_driver", ["roll", "opening"], [math.radians(2.0), math.radians(3.0)],
+                           kind="joints_std")
 
 
 def test_straight_line_speed_and_path(tmp_path):
@@ -49,6 +51,12 @@ def test_straight_line_speed_and_path(tmp_path):
     assert shaft["rms_jerk_mm_s3"] == pytest.approx(0.0, abs=1e-6) and shaft["position_std_mm"] == pytest.approx(3.0)
     assert s["parts"]["tip"]["rms_jerk_mm_s3"] == pytest.approx(60.0, rel=1e-6)
     assert s["parts"]["tip"]["position_std_mm"] is None
+    # the path's uncertainty: the speed's standard deviation (1 and 2 mm/s on alternate frames, 1.5 per step)
+    # integrated over the 2 s, as if fully correlated; none where the file has no speed uncertainty
+    assert shaft["path_length_sd_mm"] == pytest.approx(1.5 * 2.0) and shaft["mean_speed_sd_mm_s"] == pytest.approx(1.5)
+    assert s["parts"]["tip"]["path_length_sd_mm"] is None
+    assert s["instruments"]["large_needle_driver"]["opening_deg"]["std"] == pytest.approx(3.0)
+    assert "40.0 +- 3.0" in format_analysis(s)
 
     # jaw: steps touching frames 8 and 9 are not counted (no pose / "lost"), nor is the 100 mm jump
     jaw = s["parts"]["jaw"]

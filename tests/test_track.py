@@ -55,10 +55,15 @@ def test_flow_and_pnp_follow_the_ground_truth_motion(clip, lnd_parts):
     assert re_med < 3.0 and te_med < 2.0, f"flow step errors: RE median {re_med:.2f} deg, TE median {te_med:.2f} mm"
 
 
-@pytest.mark.parametrize("measure", ["flow", "region"])
-def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny_ckpt, measure):
+@pytest.mark.parametrize("measure,articulated", [("flow", False), ("region", False), ("region", True)])
+def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny_ckpt, measure, articulated):
     """Seeded with the true poses and never asked to re-estimate, flow or the region measurement + Kalman
-    keep the wrist near the ground truth while it is visible."""
+    keep the wrist near the ground truth while it is visible, with a filter per part or one state for the
+    instrument. (Flow on the textureless shaft follows its highlights: with one state that drift drags
+    the wrist along, so flow is tried with a filter per part.) Without a keyframe the depth drifts, which
+    no outline sees; one state spreads the outlines' fit over the instrument and drifts further there
+    (3.4 mm / 8.3 deg median against 1.1 mm / 2.4 deg on this 10 fps clip), hence its wider bounds; the
+    error across the line of sight, what the outlines measure, stays within 1.5 mm for both."""
     from surftrack.model import load_checkpoint
     from surftrack.pose import PoseEstimator
 
@@ -67,7 +72,7 @@ def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny
                       model.parts[i].faces)
              for i, (p, tid) in enumerate(sorted(lnd_parts.items(), key=lambda kv: kv[1]))]
     cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000, flow=measure == "flow",
-                      region=measure == "region")
+                      region=measure == "region", articulated=articulated)
     gt, K = ClipGroundTruth(clip / "gt.json"), _K(clip)
     tracker = Tracker(PoseEstimator(model, "fast", device="cpu", crop_size=64), K, (320, 256), specs, cfg)
     score = TrackScore(gt)
@@ -83,15 +88,22 @@ def test_seeded_tracking_stays_close_without_the_estimator(clip, lnd_parts, tiny
     for tid in lnd_parts.values():
         tracker.set_pose(tid, *gt.pose(start, tid)[:2], start / 10.0)
     statuses = []
+    lateral = []  # the wrist's error across the line of sight (mm)
     for i in run:
         states = tracker.step(frames[i], i / 10.0, None)
         statuses.append({s.spec.part: s.status for s in states})
         score.add_frame(i, i / 10.0, states)
+        wrist = next(s for s in states if s.spec.part == "wrist")
+        t_gt = gt.pose(i, lnd_parts["wrist"])[1]
+        d, ray = wrist.t - t_gt, t_gt / np.linalg.norm(t_gt)
+        lateral.append(float(np.linalg.norm(d - (d @ ray) * ray)))
 
     assert statuses[0]["wrist"] == "keyframe"
     assert sum(s["wrist"] == "tracking" for s in statuses[1:]) >= 4, statuses
     w = score.summary()["large_needle_driver.0.wrist"]
-    assert w["te_median_mm"] < 3.0 and w["re_median_deg"] < 8.0, w
+    te_max, re_max = (5.0, 10.0) if articulated else (3.0, 8.0)
+    assert w["te_median_mm"] < te_max and w["re_median_deg"] < re_max, w
+    assert np.median(lateral) < 1.5, lateral
 
 
 class _GroundTruthEstimator:
@@ -119,12 +131,13 @@ class _GroundTruthEstimator:
         return out
 
 
-@pytest.mark.parametrize("kinematic", [True, False])
-def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt, kinematic):
+@pytest.mark.parametrize("kinematic,articulated", [(True, True), (True, False), (False, True), (False, False)])
+def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt, kinematic, articulated):
     """A shaft track rolled 15 deg about its axis, re-estimated with the same wrong roll: with the
     kinematic fit the tracker fuses the shaft pose the wrist and jaws imply, and the track converges to it
-    over the next keyframes (a measurement, weighed against the track, not a reset); without it the wrong
-    roll stays."""
+    over the next keyframes (a measurement, weighed against the track, not a reset). Without the fit, one
+    state for the instrument still weighs the shaft's wrong roll against what the wrist and jaws imply
+    through the kinematics (6 deg off); with a filter per part the wrong roll stays."""
     from surftrack.model import load_checkpoint
 
     model = load_checkpoint(tiny_ckpt)[0]
@@ -137,7 +150,8 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         "frames showing every LND part"
     est = _GroundTruthEstimator(model, gt, lnd_parts, 15.0)
     specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
-    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, kinematic=kinematic))
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, kinematic=kinematic,
+                                                             articulated=articulated))
     for p in model.parts:
         R, t, _ = gt.pose(i - 1, lnd_parts[p.name])
         tracker.set_pose(lnd_parts[p.name], R @ est.roll if p.name == "shaft" else R, t, (i - 1) / 10.0)
@@ -152,6 +166,8 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
         errors.append(pose_distance(shaft.R, shaft.t, *gt.pose(j, lnd_parts["shaft"])[:2])[0])
     if kinematic:
         assert max(errors) < 10.0 and errors[-1] < min(errors[0], 5.0), errors  # the wrong roll was 15 deg
+    elif articulated:
+        assert max(errors) < 10.0, errors
     else:
         assert min(errors) > 10.0, errors
 

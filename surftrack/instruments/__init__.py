@@ -2,7 +2,8 @@
 YAML library, BOP models."""
 
 from surftrack.instruments.bop_models import assign_obj_ids, export_bop_models, load_bop_models, model_info
-from surftrack.instruments.fit import FitConfig, JointFit, estimate_trocar, fit_configuration, joints_from_poses
+from surftrack.instruments.fit import (FitConfig, JointFit, base_from_root, estimate_trocar, fit_configuration,
+                                      joints_from_poses)
 from surftrack.instruments.kinematics import (
     JOINT_NAMES,
     JointLimits,
@@ -29,6 +30,6 @@ __all__ = [
     "BUILTIN", "INSTRUMENTS_ENV", "Attachment", "FitConfig", "Instrument", "InstrumentError", "InstrumentRegistry",
     "JOINT_NAMES", "JointFit",
     "JointLimits", "JointState", "KinematicChain", "Material", "Part", "PartJoint", "assign_obj_ids", "estimate_trocar",
-    "export_bop_models", "fit_configuration", "joints_from_poses", "instrument_files", "list_instruments", "load_bop_models",
+    "export_bop_models", "base_from_root", "fit_configuration", "joints_from_poses", "instrument_files", "list_instruments", "load_bop_models",
     "load_instrument", "load_instrument_file", "model_info", "rcm_base_pose",
 ]

@@ -342,6 +342,14 @@ def joints_from_poses(instrument: Instrument, poses: Mapping[str, np.ndarray], q
     return JointState(*(float(np.clip(q[k], *limits[n])) for k, n in enumerate(JOINT_NAMES)))
 
 
+def base_from_root(instrument: Instrument, root_pose: np.ndarray, q: JointState) -> tuple[np.ndarray, float]:
+    """(base pose 4x4, roll rad): the zero-roll base frame and the roll that put the root part (the shaft)
+    at ``root_pose`` (4x4 part-to-camera, mm); ``q``'s own roll is ignored."""
+    q0 = np.array([0.0 if n == "roll" else getattr(q, n) for n in JOINT_NAMES])
+    o, d, roll = _initial_base(instrument, {instrument.chain.order[0]: np.asarray(root_pose, np.float64)}, q0, None)
+    return rcm_base_pose(o - d, o), roll
+
+
 def _initial_base(instrument: Instrument, poses: dict[str, np.ndarray], q: np.ndarray,
                   roll_reference: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
     """(origin, shaft direction, roll correction) from the most proximal seen part inverted through the

@@ -19,8 +19,13 @@ the summed duration of those steps, max speed = the largest step length / step d
 root mean square of the central third difference over 5 consecutive tracked frames (mm/s^3; a smoothness
 figure of skill assessment). ``position_std_mm``: the mean over tracked frames of the pose's 3D position
 standard deviation, from the filter's covariance the tracker writes in the status (None in files
-without it). Path length has no uncertainty here: the per-frame errors of a smoothed track are
-correlated, and the file holds no cross-frame covariance.
+without it). ``path_length_sd_mm``: the sum over the counted steps of the speed's standard deviation
+(status ``speed_std_mm_s``) times the step's duration: the path's standard deviation were the speed
+errors of all frames fully correlated, an upper bound on it (the file holds no cross-frame covariance;
+smoothed errors are strongly correlated over a second or so); ``mean_speed_sd_mm_s`` is that over the
+steps' duration and ``max_speed_sd_mm_s`` the speed's standard deviation at the fastest step. The jaw
+opening's ``std`` is the mean of its standard deviation (``/instruments/<name>/joints_std``) over the
+frames that have one.
 
 :func:`format_analysis` renders the summary as a text table, :func:`plot_analysis` as a PNG.
 """
@@ -45,6 +50,7 @@ __all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
 _POSE = re.compile(r"^/parts/([^/]+)/pose$")
 _STATUS = re.compile(r"^/parts/([^/]+)/status$")
 _JOINTS = re.compile(r"^/instruments/([^/]+)/joints$")
+_JOINTS_STD = re.compile(r"^/instruments/([^/]+)/joints_std$")
 _TIP = re.compile(r"^/instruments/([^/]+)/tool_tip$")
 
 
@@ -72,9 +78,11 @@ def _read(path: Path) -> list[tuple[str, str, int, dict]]:
     return out
 
 
-def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[int, bool]) -> dict:
-    """Path length, speeds and jerk over consecutive tracked frames (see the module docstring)."""
-    steps_t, steps_v, length, duration = [], [], 0.0, 0.0
+def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[int, bool],
+            speed_std: dict[int, float] | None = None) -> dict:
+    """Path length, speeds and jerk over consecutive tracked frames, and their uncertainty bounds where
+    ``speed_std`` (frame -> mm/s) is known (see the module docstring)."""
+    steps_t, steps_v, steps_sd, length, duration = [], [], [], 0.0, 0.0
     for a, b in zip(times_ns[:-1], times_ns[1:]):
         if not (tracked[a] and tracked[b]) or b <= a:
             continue
@@ -84,6 +92,8 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
         duration += dt
         steps_t.append(0.5 * (a + b) * 1e-9)
         steps_v.append(d / dt)
+        if speed_std is not None and a in speed_std and b in speed_std:
+            steps_sd.append((0.5 * (speed_std[a] + speed_std[b]), dt))
     # jerk: central third difference over 5 consecutive tracked frames (exact for a cubic path)
     jerks = []
     for k in range(2, len(times_ns) - 2):
@@ -94,8 +104,13 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
         dt = (win[-1] - win[0]) * 1e-9 / 4.0
         x = [xyz_mm[n] for n in win]
         jerks.append(float(np.linalg.norm(x[4] - 2.0 * x[3] + 2.0 * x[1] - x[0]) / (2.0 * dt**3)))
+    known = speed_std is not None and steps_v and len(steps_sd) == len(steps_v)
+    path_sd = sum(sd * dt for sd, dt in steps_sd) if known else None
     return {
         "path_length_mm": length,
+        "path_length_sd_mm": path_sd,
+        "mean_speed_sd_mm_s": path_sd / duration if known and duration > 0 else None,
+        "max_speed_sd_mm_s": steps_sd[int(np.argmax(steps_v))][0] if known else None,
         "mean_speed_mm_s": length / duration if duration > 0 else None,
         "max_speed_mm_s": max(steps_v) if steps_v else None,
         "rms_jerk_mm_s3": float(np.sqrt(np.mean(np.square(jerks)))) if jerks else None,
@@ -124,11 +139,11 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         {"file": str,
          "parts": {name: {"pose_frames", "tracked_frames", "t_start_s", "t_end_s", "span_s",
                           "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s", "rms_jerk_mm_s3",
-                          "position_std_mm",
+                          "position_std_mm", "path_length_sd_mm", "mean_speed_sd_mm_s", "max_speed_sd_mm_s",
                           "series": {"time_s", "x_mm", "y_mm", "z_mm", "tracked",
                                      "speed_time_s", "speed_mm_s"}}},
          "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
-                                "opening_deg": {"min", "mean", "max"} or None,
+                                "opening_deg": {"min", "mean", "max", "std"} or None,
                                 "tool_tip": {"frames", "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
                                              "rms_jerk_mm_s3"} or None,
                                 "series": {"time_s", "<joint>_deg": [...]}}}}
@@ -142,7 +157,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     poses: dict[str, dict[int, np.ndarray]] = {}
     status: dict[str, dict[int, str]] = {}
     pos_std: dict[str, dict[int, float]] = {}
+    speed_std: dict[str, dict[int, float]] = {}
     joints: dict[str, list[tuple[int, dict[str, float]]]] = {}
+    joints_std: dict[str, list[dict[str, float]]] = {}
     tips: dict[str, dict[int, np.ndarray]] = {}
     messages = _read(path)
     try:
@@ -155,12 +172,18 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                 sd = (msg.get("extra") or {}).get("position_std_mm")
                 if sd is not None:
                     pos_std.setdefault(m.group(1), {})[ns] = float(np.linalg.norm(sd))
+                vsd = (msg.get("extra") or {}).get("speed_std_mm_s")
+                if vsd is not None:
+                    speed_std.setdefault(m.group(1), {})[ns] = float(vsd)
             elif (m := _TIP.match(topic)) and schema == "foxglove.PoseInFrame":
                 p = msg["pose"]["position"]
                 tips.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
             elif (m := _JOINTS.match(topic)) and schema == "foxglove.JointStates":
                 vals = {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j}
                 joints.setdefault(m.group(1), []).append((ns, vals))
+            elif (m := _JOINTS_STD.match(topic)) and schema == "foxglove.JointStates":
+                joints_std.setdefault(m.group(1), []).append(
+                    {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j})
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: malformed tracking message ({type(e).__name__}: {e})") from None
 
@@ -171,7 +194,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         frames = sorted(set(xyz) | set(st))
         tracked = {ns: ns in xyz and (ns not in st or st[ns] in tracked_ok) for ns in frames}
         pose_ns = sorted(xyz)
-        motion = _motion(frames, xyz, tracked)
+        motion = _motion(frames, xyz, tracked, speed_std.get(name) if name in speed_std else None)
         arr = np.array([xyz[ns] for ns in pose_ns]).reshape(-1, 3)
         parts[name] = {
             "pose_frames": len(pose_ns),
@@ -182,6 +205,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             "path_length_mm": motion["path_length_mm"],
             "mean_speed_mm_s": motion["mean_speed_mm_s"],
             "max_speed_mm_s": motion["max_speed_mm_s"],
+            "path_length_sd_mm": motion["path_length_sd_mm"],
+            "mean_speed_sd_mm_s": motion["mean_speed_sd_mm_s"],
+            "max_speed_sd_mm_s": motion["max_speed_sd_mm_s"],
             "rms_jerk_mm_s3": motion["rms_jerk_mm_s3"],
             "position_std_mm": (float(np.mean(sds)) if (sds := [v for ns, v in pos_std.get(name, {}).items()
                                                                  if tracked.get(ns)]) else None),
@@ -200,6 +226,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         for j in names:
             series[f"{j}_deg"] = [math.degrees(vals[j]) if j in vals else math.nan for _, vals in msgs]
         opening = [v for v in series.get("opening_deg", []) if math.isfinite(v)]
+        opening_sd = [math.degrees(sd["opening"]) for sd in joints_std.get(name, []) if "opening" in sd]
         tip = tips.get(name, {})
         tip_motion = _motion(*_with_gaps(tip)) if tip else None
         instruments[name] = {
@@ -210,7 +237,8 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             "t_start_s": msgs[0][0] * 1e-9,
             "t_end_s": msgs[-1][0] * 1e-9,
             "joint_names": names,
-            "opening_deg": ({"min": min(opening), "mean": float(np.mean(opening)), "max": max(opening)}
+            "opening_deg": ({"min": min(opening), "mean": float(np.mean(opening)), "max": max(opening),
+                             "std": float(np.mean(opening_sd)) if opening_sd else None}
                             if opening else None),
             "series": series,
         }
@@ -219,6 +247,11 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
 
 def _num(v: float | None, fmt: str) -> str:
     return "-" if v is None else format(v, fmt)
+
+
+def _pm(v: float | None, sd: float | None) -> str:
+    """``v +- sd`` with one decimal (``-`` without a value, ``v`` alone without ``sd``)."""
+    return "-" if v is None else f"{v:.1f}" if sd is None else f"{v:.1f} +- {sd:.1f}"
 
 
 def format_analysis(summary: dict) -> str:
@@ -230,24 +263,25 @@ def format_analysis(summary: dict) -> str:
     else:
         w = max(4, *(len(n) for n in parts))
         lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'path_mm':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}  {'jerk_mm/s3':>10}  {'pos_std_mm':>10}")
+                     f"{'path_mm':>15}  {'mean_mm/s':>13}  {'max_mm/s':>13}  {'jerk_mm/s3':>10}  {'pos_std_mm':>10}")
         for n, p in parts.items():
             lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  "
                          f"{_num(p['t_start_s'], '8.3f'):>8}  {_num(p['t_end_s'], '8.3f'):>8}  "
-                         f"{p['path_length_mm']:>9.1f}  {_num(p['mean_speed_mm_s'], '9.1f'):>9}  "
-                         f"{_num(p['max_speed_mm_s'], '9.1f'):>9}  {_num(p['rms_jerk_mm_s3'], '10.0f'):>10}  "
+                         f"{_pm(p['path_length_mm'], p.get('path_length_sd_mm')):>15}  "
+                         f"{_pm(p['mean_speed_mm_s'], p.get('mean_speed_sd_mm_s')):>13}  "
+                         f"{_pm(p['max_speed_mm_s'], p.get('max_speed_sd_mm_s')):>13}  {_num(p['rms_jerk_mm_s3'], '10.0f'):>10}  "
                          f"{_num(p['position_std_mm'], '10.2f'):>10}")
     insts = summary["instruments"]
     if insts:
         w = max(10, *(len(n) for n in insts))
         lines.append("")
         lines.append(f"{'instrument':<{w}}  {'frames':>6}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'opening_deg min / mean / max':>28}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
+                     f"{'opening_deg min / mean / max':>36}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
                      f"{'tip_max_mm/s':>12}  {'tip_jerk_mm/s3':>14}")
         for n, i in insts.items():
             o, tip = i["opening_deg"], i.get("tool_tip") or {}
-            ostr = "-" if o is None else f"{o['min']:.1f} / {o['mean']:.1f} / {o['max']:.1f}"
-            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}  "
+            ostr = "-" if o is None else f"{o['min']:.1f} / {_pm(o['mean'], o.get('std'))} / {o['max']:.1f}"
+            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>36}  "
                          f"{_num(tip.get('path_length_mm'), '11.1f'):>11}  {_num(tip.get('mean_speed_mm_s'), '13.1f'):>13}  "
                          f"{_num(tip.get('max_speed_mm_s'), '12.1f'):>12}  {_num(tip.get('rms_jerk_mm_s3'), '14.0f'):>14}")
     return "\n".join(lines)

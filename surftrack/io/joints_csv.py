@@ -5,10 +5,13 @@ Columns (units in the names)::
 
     time_s, instrument, roll_deg, pitch_deg, yaw_deg, opening_deg,
     base_tx_mm, base_ty_mm, base_tz_mm, base_qx, base_qy, base_qz, base_qw,
-    rms_mm, parts_used, held, ok
+    rms_mm, parts_used, held, ok, roll_std_deg, pitch_std_deg, yaw_std_deg, opening_std_deg
 
 ``parts_used`` and ``held`` (joints kept at the warm start because the seen parts do not determine them,
-see :mod:`surftrack.instruments.fit`) are ``;``-separated part / joint names; ``ok`` is 1 or 0.
+see :mod:`surftrack.instruments.fit`) are ``;``-separated part / joint names; ``ok`` is 1 or 0. Joints
+read off an instrument's tracked state (:mod:`surftrack.track.instrument`) come with their standard
+deviations (``*_std_deg``) and no ``rms_mm`` (the parts are views of that state: nothing was fitted);
+joints fitted frame by frame come with ``rms_mm`` and no standard deviations.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ __all__ = ["JOINT_CSV_COLUMNS", "JointCsvWriter", "write_joint_csv"]
 JOINT_CSV_COLUMNS = (
     "time_s", "instrument", *(f"{n}_deg" for n in JOINT_NAMES),
     "base_tx_mm", "base_ty_mm", "base_tz_mm", "base_qx", "base_qy", "base_qz", "base_qw",
-    "rms_mm", "parts_used", "held", "ok",
+    "rms_mm", "parts_used", "held", "ok", *(f"{n}_std_deg" for n in JOINT_NAMES),
 )
 
 
@@ -49,7 +52,8 @@ class JointCsvWriter:
         self._csv = csv.writer(self._f)
         self._csv.writerow(JOINT_CSV_COLUMNS)
 
-    def add(self, time_s: float, instrument: str, fit: JointFit) -> None:
+    def add(self, time_s: float, instrument: str, fit: JointFit, std: dict[str, float] | None = None) -> None:
+        """A row for ``fit`` at ``time_s``; ``std``: joint name -> standard deviation (rad), where known."""
         t = float(time_s)
         if not math.isfinite(t):
             raise ValueError(f"{self.path}: row time must be finite, got {time_s!r}")
@@ -58,7 +62,8 @@ class JointCsvWriter:
             f"{t:.9f}", str(instrument),
             *(f"{np.degrees(getattr(fit.joints, n)):.6f}" for n in JOINT_NAMES),
             *(f"{v:.6f}" for v in fit.base_t), *(f"{v:.9f}" for v in q),
-            f"{fit.rms_mm:.6f}", ";".join(fit.parts_used), ";".join(fit.held), int(fit.ok),
+            f"{fit.rms_mm:.6f}" if fit.residuals else "", ";".join(fit.parts_used), ";".join(fit.held), int(fit.ok),
+            *(f"{np.degrees(std[n]):.6f}" if std and n in std else "" for n in JOINT_NAMES),
         ])
         self._f.flush()
 

@@ -24,7 +24,9 @@ per frame holding every part, parent ``camera`` -> child ``<name>``), ``/parts/<
 ``/camera/calibration``, ``/camera/image`` (JPEG CompressedImage), ``/camera/annotations``,
 ``/parts/meshes`` (SceneUpdate: one frame-locked entity per part in the part's frame; deleted while the
 part is lost),
-``/instruments/<instrument>/joints`` (JointStates: the fitted joint variables, radians).
+``/instruments/<instrument>/joints`` (JointStates: the joint variables, radians, with their rates where
+known), ``/instruments/<instrument>/joints_std`` (their standard deviations, radians, where known),
+``/instruments/<instrument>/tool_tip``.
 
 The file is always finished (summary, index, statistics written) by ``close()`` or on leaving the
 ``with`` block, including when an exception interrupts the run, so what was written stays readable.
@@ -386,14 +388,18 @@ class TrackWriter:
 
     def joint_states(self, time_s: float, instrument_name: str, names: Sequence[str],
                      positions: Sequence[float | None],
-                     extra: Mapping[str, Sequence[float | None]] | None = None) -> None:
+                     extra: Mapping[str, Sequence[float | None]] | None = None, kind: str = "joints") -> None:
         """``foxglove.JointStates`` on ``/instruments/<instrument_name>/joints``: one entry per joint
         ``{name, position}``, positions in RADIANS (revolute joints, like ROS ``sensor_msgs/JointState``;
         the jaw opening too). ``extra`` optionally maps ``"velocity"`` (rad/s), ``"acceleration"``
         (rad/s^2) or ``"effort"`` to one value per joint. A None or NaN value leaves that field out for
         that joint (the fields are optional in Foxglove's schema; JSON has no NaN). E.g. for a
         :class:`~surftrack.instruments.JointFit` ``fit``:
-        ``w.joint_states(t, "lnd", JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])``."""
+        ``w.joint_states(t, "lnd", JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])``.
+        ``kind="joints_std"`` writes the joints' standard deviations (radians, as positions) on
+        ``/instruments/<instrument_name>/joints_std`` instead."""
+        if kind not in ("joints", "joints_std"):
+            raise ValueError(f"joint_states: kind must be 'joints' or 'joints_std', got {kind!r}")
         inst = _check_name(instrument_name)
         names = [_check_name(n) for n in names]
         positions = list(positions)
@@ -415,7 +421,7 @@ class TrackWriter:
                     entry[key] = float(v)
             joints.append(entry)
         ns = time_to_ns(time_s)
-        self._write(f"/instruments/{inst}/joints", "foxglove.JointStates", ns,
+        self._write(f"/instruments/{inst}/{kind}", "foxglove.JointStates", ns,
                     {"timestamp": _stamp(ns), "joints": joints})
 
     def camera_calibration(self, time_s: float, K, width: int, height: int, dist=None,

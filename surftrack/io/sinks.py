@@ -17,6 +17,7 @@ import numpy as np
 
 from surftrack.instruments import JOINT_NAMES
 from surftrack.track import PartSpec, PartState, Status
+from surftrack.track.instrument import read_joints
 
 
 class FrameSink(Protocol):
@@ -34,14 +35,19 @@ def status_rgba(status: Status) -> tuple[float, float, float, float]:
 
 
 def uncertainty(s: PartState) -> dict:
-    """Per-axis standard deviations of a part's pose (mm; body rotation, deg) and its velocity (camera
-    frame, mm/s; body angular velocity, deg/s) from its filter state, for the status message."""
+    """Per-axis standard deviations of a part's pose (mm; body rotation, deg), its velocity (camera frame,
+    mm/s; body angular velocity, deg/s) and its speed's standard deviation (mm/s) from its filter state,
+    for the status message."""
     if s.filter_step is None:
         return {}
     sd = np.sqrt(np.clip(np.diag(s.filter_step.P), 0.0, None))
     x = s.filter_step.x
+    v = x[3:6]
+    u = v / max(float(np.linalg.norm(v)), 1e-9)
     return {"position_std_mm": sd[0:3].round(3).tolist(), "rotation_std_deg": np.degrees(sd[6:9]).round(3).tolist(),
-            "velocity_mm_s": x[3:6].round(3).tolist(), "angular_velocity_deg_s": np.degrees(x[9:12]).round(3).tolist()}
+            "velocity_mm_s": v.round(3).tolist(), "angular_velocity_deg_s": np.degrees(x[9:12]).round(3).tolist(),
+            # the speed's standard deviation, along the velocity (what a path length integrates)
+            "speed_std_mm_s": round(float(np.sqrt(max(u @ s.filter_step.P[3:6, 3:6] @ u, 0.0))), 3)}
 
 
 def image_annotations(K: np.ndarray, states: list[PartState]) -> dict:
@@ -123,11 +129,13 @@ class TumSink:
 
 
 class JointsSink:
-    """Each instrument's joint angles fitted to its parts' poses (``fitters``: (instrument, instance) ->
-    :class:`~surftrack.track.articulation.ArticulationTracker`), as foxglove.JointStates in the MCAP (with
-    the fitted tool tip, :meth:`~surftrack.instruments.Instrument.tool_tip`, on ``.../tool_tip``) and,
-    with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`. ``timing["joints_s"]``
-    accumulates the fitting time."""
+    """Each instrument's joint angles, as foxglove.JointStates in the MCAP (with their rates as
+    ``velocity``, rad/s, where known, and the tool tip, :meth:`~surftrack.instruments.Instrument.tool_tip`,
+    on ``.../tool_tip``) and, with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`.
+    An instrument tracked as one articulated state (:mod:`surftrack.track.instrument`) has its joints
+    read off that (smoothed) state; otherwise ``fitters`` ((instrument, instance) ->
+    :class:`~surftrack.track.articulation.ArticulationTracker`) fit them to the parts' poses.
+    ``timing["joints_s"]`` accumulates the time spent."""
 
     def __init__(self, writer, fitters: dict, csv=None, timing: Counter | None = None):
         self.writer, self.fitters, self.csv = writer, fitters, csv
@@ -136,14 +144,25 @@ class JointsSink:
     def write(self, index: int, time_s: float, frame: np.ndarray | None, states: list[PartState]) -> None:
         for (inst, instance), fitter in self.fitters.items():
             t0 = time.perf_counter()
-            fit = fitter.update([s for s in states if (s.spec.instrument, s.spec.instance) == (inst, instance)])
+            mine = [s for s in states if (s.spec.instrument, s.spec.instance) == (inst, instance)]
+            shared = next((s.shared for s in mine if s.shared is not None), None)
+            rates: dict[str, float] = {}
+            std: dict[str, float] | None = None
+            if shared is not None:
+                reading = read_joints(shared[1], shared[2])
+                fit, tip, rates, std = reading.fit, reading.tip, reading.rates, reading.std
+            else:
+                fit = fitter.update(mine)
+                tip = fitter.instrument.tool_tip(fit.part_poses(fitter.instrument)) if fit is not None else None
             self.timing["joints_s"] += time.perf_counter() - t0
             if fit is None:
                 continue
             label = f"{inst}.{instance}"
-            self.writer.joint_states(time_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES])
-            tip = fitter.instrument.tool_tip(fit.part_poses(fitter.instrument))
+            self.writer.joint_states(time_s, label, JOINT_NAMES, [getattr(fit.joints, n) for n in JOINT_NAMES],
+                                     {"velocity": [rates.get(n) for n in JOINT_NAMES]} if rates else None)
+            if std:
+                self.writer.joint_states(time_s, label, JOINT_NAMES, [std.get(n) for n in JOINT_NAMES], kind="joints_std")
             if tip is not None:
                 self.writer.tool_tip(time_s, label, *tip)
             if self.csv is not None:
-                self.csv.add(time_s, label, fit)
+                self.csv.add(time_s, label, fit, std)

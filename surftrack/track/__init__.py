@@ -3,7 +3,7 @@
 :class:`Tracker` runs the per-part state machine (:mod:`.tracker`): the pose estimator initialises and
 recovers parts, pyramidal LK on model points plus PnP (:mod:`.flow`) measures between keyframes, and
 :class:`PoseKalman` (:mod:`.kalman`, 12-state error-state constant velocity, gated before update) fuses
-them. :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
+them; the parts of a described instrument share one articulated state (:mod:`.instrument`). :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
 :mod:`.config` holds the settings (``configs/track/default.yaml``); :mod:`.smoother` smooths the filter's
 states backward for offline runs; :mod:`.status` names a part's status on a frame.
 """
@@ -12,7 +12,8 @@ from surftrack.track.config import TrackConfig, TrackConfigError, load_track_con
 from surftrack.track.inputs import InputError
 from surftrack.track.kalman import CHI2_6DOF_999, KalmanConfig, PoseKalman
 from surftrack.track.status import MEASURED, POSED, Status
-from surftrack.track.tracker import PartSpec, PartState, Tracker, box_iou, projected_box
+from surftrack.track.tracker import PartSpec, PartState, Tracker, box_iou, filter_steps, projected_box
 
 __all__ = ["CHI2_6DOF_999", "MEASURED", "POSED", "InputError", "KalmanConfig", "PartSpec", "PartState", "PoseKalman",
-           "Status", "TrackConfig", "TrackConfigError", "Tracker", "box_iou", "load_track_config", "projected_box"]
+           "Status", "TrackConfig", "TrackConfigError", "Tracker", "box_iou", "filter_steps", "load_track_config",
+           "projected_box"]

@@ -60,6 +60,15 @@ class TrackConfig:
     every_frame.yaml`` keeps that mode; docs/results/2026-12-03-region.md). It needs a keyframe cadence
     above 1: a part due for the estimator is not measured by its silhouette on that frame.
 
+    ``articulated``: one filter state per described instrument whose root part (the shaft) is tracked
+    (:mod:`surftrack.track.instrument`: the root's pose and the joints, each with its rate); its parts are
+    views of it through the forward kinematics, so every measurement of one part (keyframe, silhouette)
+    moves the others consistently and a hidden part keeps the pose the rest implies. The joints'
+    white-noise acceleration is ``joint_accel_std_rad_s2`` (8 let the jaws jitter 1.1-1.2 deg a frame on
+    the tuning clip, 2 kept them at 0.5). On a keyframe with the kinematic fit, the instrument's parts'
+    poses come from one joint fit: each is fused with the estimator's covariance times the number of
+    them (one measurement of the state, not one per part).
+
     ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
@@ -89,6 +98,8 @@ class TrackConfig:
     region_joint_std_deg: float = 10.0
     region_max_std_mm: float = 1.0
     region_max_std_deg: float = 3.0
+    articulated: bool = True
+    joint_accel_std_rad_s2: float = 2.0
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3
@@ -150,7 +161,8 @@ class TrackConfig:
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_std_mm",
-                     "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg"):
+                     "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg",
+                     "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg"):

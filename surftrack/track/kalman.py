@@ -207,6 +207,11 @@ class PoseKalman:
         return self.kf.P.copy()
 
     @property
+    def pose_cov(self) -> np.ndarray:
+        """6x6 covariance of the pose (position mm, body rotation rad)."""
+        return _H @ self.kf.P @ _H.T
+
+    @property
     def position_std_mm(self) -> np.ndarray:
         """Per-axis position standard deviation (3,) in mm."""
         return np.sqrt(np.diag(self.kf.P)[0:3])

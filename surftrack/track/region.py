@@ -109,11 +109,18 @@ class RegionResult:
         :meth:`~surftrack.track.kalman.PoseKalman.update`'s ``basis``. A silhouette sees its part's
         lateral position and in-plane turns well, its depth and a cylinder's roll poorly: passing those
         on, however wide their variance, would let the fit's wandering there into the track."""
-        scale = np.r_[np.full(3, max_std_mm), np.full(3, np.radians(max_std_deg))]
-        w, V = np.linalg.eigh(self.cov / np.outer(scale, scale))
-        keep = w < 1.0
-        basis = V[:, keep].T / scale[None, :]
-        return basis, np.diag(w[keep])
+        return observed_directions(self.cov, max_std_mm, max_std_deg)
+
+
+def observed_directions(cov: np.ndarray, max_std_mm: float, max_std_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """(basis m x n, its m x m covariance): the combinations of parameters with covariance ``cov`` (n x n;
+    3 positions in mm first, then angles in rad) pinned to better than ``max_std_mm`` / ``max_std_deg``
+    in units of those."""
+    n = cov.shape[0]
+    scale = np.r_[np.full(3, max_std_mm), np.full(n - 3, np.radians(max_std_deg))]
+    w, V = np.linalg.eigh(cov / np.outer(scale, scale))
+    keep = w < 1.0
+    return V[:, keep].T / scale[None, :], np.diag(w[keep])
 
 
 class ColorModel:
@@ -323,6 +330,7 @@ class RegionTracker:
         caps = np.r_[np.full(3, cfg.max_std_mm), np.full(model.size - 3, np.radians(cfg.max_std_deg))]
         ev, V = np.linalg.eigh(0.5 * (H + H.T) * np.outer(caps, caps))
         cov_x = np.outer(caps, caps) * (V @ np.diag(1.0 / np.maximum(ev, 1e-9)) @ V.T)
+        model.solution_cov = cov_x
         poses, D = model.poses(x), model.derivatives(x)
         out = {}
         for n in names:
@@ -346,7 +354,8 @@ class PoseModel:
 
     def __init__(self, name: str, R: np.ndarray, t: np.ndarray):
         self.parts = [name]
-        self.solution: np.ndarray | None = None  # set by RegionTracker.measure
+        self.solution: np.ndarray | None = None  # set by RegionTracker.measure, with the lines' covariance:
+        self.solution_cov: np.ndarray | None = None
         self.R0, self.t0 = np.asarray(R, np.float64), np.asarray(t, np.float64)
 
     def poses(self, x: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:

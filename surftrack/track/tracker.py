@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -33,8 +34,9 @@ from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_i
 from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
+from surftrack.track.instrument import InstrumentKalman, PartFilter
 from surftrack.track.kalman import FilterStep, PoseKalman
-from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker
+from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
 from surftrack.track.status import POSED, Status
 
 
@@ -77,6 +79,21 @@ class PartState:
     box: Box | None
     info: dict = field(default_factory=dict)
     filter_step: FilterStep | None = None  # the part's filter this frame (for smoothing; None without a pose)
+    # the instrument's articulated state this part is a view of: (its smoothing key, the filter, its step)
+    shared: tuple[str, InstrumentKalman, FilterStep] | None = None
+
+    def smoothing_key(self) -> str:
+        """The key of the filter state this part's pose comes from (its own, or its instrument's)."""
+        return self.shared[0] if self.shared is not None else self.spec.name
+
+    def step_from(self, steps: Mapping[str, FilterStep | None]) -> FilterStep | None:
+        """This part's step from the (smoothed) states ``steps`` (key -> step, :func:`filter_steps`)."""
+        if self.R is None:
+            return None
+        step = steps.get(self.smoothing_key())
+        if step is None or self.shared is None:
+            return step
+        return self.shared[1].part_step(step, self.spec.name)
 
     def with_step(self, step: FilterStep | None) -> PartState:
         """This state with its pose taken from ``step`` (e.g. the smoothed one)."""
@@ -84,6 +101,14 @@ class PartState:
             return self
         R, t = step.pose
         return dataclasses.replace(self, R=R, t=t, filter_step=step)
+
+    def settle(self, steps: Mapping[str, FilterStep | None], cfg: TrackConfig) -> PartState:
+        """:meth:`settled` from the frame's (smoothed) filter states ``steps`` (:func:`filter_steps`); the
+        instrument state it is a view of becomes the smoothed one too (for the joints read off it)."""
+        out = self.settled(self.step_from(steps), cfg)
+        if out.shared is not None and steps.get(out.shared[0]) is not None:
+            out = dataclasses.replace(out, shared=(out.shared[0], out.shared[1], steps[out.shared[0]]))
+        return out
 
     def settled(self, step: FilterStep | None, cfg: TrackConfig) -> PartState:
         """The state as a run writes it: pose from ``step`` (smoothed, or the filter's when causal) and
@@ -99,6 +124,19 @@ class PartState:
         if "rejected_d2" in out.info:
             conf *= cfg.confidence_rejected
         return dataclasses.replace(out, confidence=float(conf))
+
+
+def filter_steps(states: Sequence[PartState]) -> dict[str, FilterStep | None]:
+    """The filter states behind a frame's part states, by smoothing key: one per described instrument
+    (its articulated state), one per free part."""
+    out: dict[str, FilterStep | None] = {}
+    for s in states:
+        if s.shared is not None:
+            if s.R is not None or s.shared[0] not in out:
+                out[s.shared[0]] = s.shared[2] if s.R is not None else None
+        else:
+            out[s.spec.name] = s.filter_step
+    return out
 
 
 def box_iou(a: Box, b: Box) -> float:
@@ -132,9 +170,10 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
 class _Track:
     """Mutable per-part state."""
 
-    def __init__(self, spec: PartSpec, cfg: TrackConfig):
-        self.spec, self.cfg = spec, cfg
-        self.kf = PoseKalman(cfg.kalman)
+    def __init__(self, spec: PartSpec, cfg: TrackConfig, shared: InstrumentKalman | None = None,
+                 widen: np.ndarray | None = None):
+        self.spec, self.cfg, self.shared, self.widen = spec, cfg, shared, widen
+        self.kf = self.new_filter()
         self.status = Status.INIT
         self.confidence = 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
@@ -155,8 +194,16 @@ class _Track:
     def has_pose(self) -> bool:
         return self.status in POSED
 
+    def new_filter(self) -> PoseKalman | PartFilter:
+        """A filter for a new track: a view of the instrument's state, or the part's own."""
+        if self.shared is not None:
+            return PartFilter(self.shared, self.spec.name, self.widen)
+        return PoseKalman(self.cfg.kalman)
+
     def drop(self) -> None:
-        self.kf = PoseKalman(self.cfg.kalman)
+        if isinstance(self.kf, PartFilter):
+            self.kf.deactivate()
+        self.kf = self.new_filter()
         self.unseen = self.occluded = 0
         self.status, self.confidence = Status.LOST, 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
@@ -176,7 +223,17 @@ class Tracker:
         self.estimator, self.cfg, self.instruments = estimator, cfg or TrackConfig(), instruments
         self.K = np.asarray(K, np.float64)
         self.size = (int(image_size[0]), int(image_size[1]))
-        self.tracks = [_Track(s, self.cfg) for s in specs]
+        self._described: dict[str, Instrument | None] = {}  # instrument key -> its description, if any
+        by_instrument = instrument_parts(estimator.model.parts)
+        for s in specs:
+            self._described[f"{s.instrument}.{s.instance}"] = described_instrument(
+                s.instrument, by_instrument.get(s.instrument), registry=instruments)[0]
+        self.shared: dict[str, InstrumentKalman] = {}  # instrument key -> its articulated state
+        if self.cfg.articulated:
+            for key, inst in self._described.items():
+                names = {s.part: s.name for s in specs if f"{s.instrument}.{s.instance}" == key}
+                if inst is not None and inst.chain.order[0] in names:
+                    self.shared[key] = InstrumentKalman(inst, names, self.cfg.kalman, self.cfg.joint_accel_std_rad_s2)
         self.samples: dict[str, SurfaceSamples] = {}
         for s in specs:
             mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
@@ -192,24 +249,22 @@ class Tracker:
         # an estimator pose the filter disbelieves replaces the prediction (10x the estimator's noise on
         # top of it), without cutting the track in two for the smoother
         self._widen = 100.0 * self._est_cov
+        self.tracks = [_Track(s, self.cfg, self.shared.get(f"{s.instrument}.{s.instance}"), self._widen)
+                       for s in specs]
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
         self._region_floor = np.diag([self.cfg.region_floor_mm**2] * 3 + [np.radians(self.cfg.region_floor_deg)**2] * 3)
         self._region: RegionTracker | None = None
         self._region_specs = list(specs)
-        self._described: dict[str, Instrument | None] = {}  # instrument key -> its description, if any
         self._joints: dict[str, JointState] = {}  # instrument key -> the joints its last accepted fit found
 
     def _region_tracker(self) -> RegionTracker:
         """The region measurement's renderer and colour models, made on first use (a GL context)."""
         if self._region is None:
-            by_instrument = instrument_parts(self.estimator.model.parts)
             meshes, groups, attachments = {}, {}, {}
             for s in self._region_specs:
                 meshes[s.name] = trimesh.Trimesh(s.vertices, s.faces, process=False)
                 groups[s.name] = f"{s.instrument}.{s.instance}"
-                inst, _ = described_instrument(s.instrument, by_instrument.get(s.instrument),
-                                               registry=self.instruments)
-                self._described[groups[s.name]] = inst
+                inst = self._described[groups[s.name]]
                 # the long shaft tube the model does not track is still part of the silhouette
                 attachments[s.name] = [a.mesh for a in inst.attachments if a.part == s.part] if inst else []
             self._region = RegionTracker(self.K, self.size, meshes, groups, attachments,
@@ -252,7 +307,7 @@ class Tracker:
         tr.points = visible_points(gray, self.K, self.samples, self._posed(), tr.spec.name,
                                    max_points=self.cfg.max_points)
         tr.n_points_fresh = len(tr.points)
-        tr.lift_cov = PoseKalman.H @ tr.kf.covariance @ PoseKalman.H.T
+        tr.lift_cov = tr.kf.pose_cov
         tr.since_refresh = 0
 
     def set_pose(self, track_id: int, R: np.ndarray, t: np.ndarray, time_s: float) -> None:
@@ -262,7 +317,9 @@ class Tracker:
         tr = next((x for x in self.tracks if x.spec.track_id == track_id), None)
         if tr is None:
             raise KeyError(f"no part with track id {track_id}")
-        tr.kf = PoseKalman(self.cfg.kalman)
+        if isinstance(tr.kf, PartFilter):
+            tr.kf.deactivate()
+        tr.kf = tr.new_filter()
         tr.kf.init(np.asarray(R, np.float64), np.asarray(t, np.float64), time_s - 1e-6, self._est_cov)
         tr.status, tr.confidence = Status.KEYFRAME, 1.0
         tr.since_keyframe = tr.since_meas = 0
@@ -286,11 +343,19 @@ class Tracker:
         self._refresh_points(gray)
         self.prev_gray = gray
         states = []
+        snaps: dict[str, FilterStep] = {}  # instrument key -> its state this frame
         for tr in self.tracks:
             if tr.has_pose:
                 R, t = tr.kf.pose
+                shared = None
+                if isinstance(tr.kf, PartFilter):
+                    key = f"{tr.spec.instrument}.{tr.spec.instance}"
+                    snap = snaps.setdefault(key, tr.kf.shared.snapshot())
+                    shared, step = (key, tr.kf.shared, snap), tr.kf.shared.part_step(snap, tr.spec.name)
+                else:
+                    step = tr.kf.snapshot()
                 states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
-                                        out_boxes.get(tr.spec.track_id), dict(tr.info), tr.kf.snapshot()))
+                                        out_boxes.get(tr.spec.track_id), dict(tr.info), step, shared))
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
                                         dict(tr.info)))
@@ -381,6 +446,11 @@ class Tracker:
             groups.setdefault(f"{tr.spec.instrument}.{tr.spec.instance}", []).append(tr)
         for key, trs in groups.items():
             t1 = time.perf_counter()
+            if key in self.shared and isinstance(trs[0].kf, PartFilter):
+                self._measure_shared(frame_rgb, contours, key, trs)
+                for tr in trs:
+                    tr.info["region_ms"] = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+                continue
             results = {}
             models = self._region_models(key, trs)
             for model, prior in models:
@@ -403,6 +473,37 @@ class Tracker:
                     self._joints[key] = model.joint_state(model.solution)
             for tr in trs:
                 tr.info["region_ms"] = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+
+    def _measure_shared(self, frame_rgb: np.ndarray, contours: Mapping, key: str, trs: list[_Track]) -> None:
+        """The region measurement of an instrument with one articulated state: one fit of the whole
+        instrument from the state (its covariance the fit's prior), fused as one measurement of the state
+        in the directions the lines pin; parts whose own outline agrees count as measured."""
+        cfg, shared = self.cfg, self.shared[key]
+        model = shared.model()
+        E = shared._expand(np.eye(model.size), model)  # model parameters -> state error coordinates
+        results = self._region_tracker().measure(frame_rgb, contours, model, E @ shared.kf.P @ E.T)
+        if not results or model.solution_cov is None:
+            return
+        lines = sum(r.lines for r in results.values())
+        agreement = sum(r.agreement * r.lines for r in results.values()) / max(lines, 1)
+        for tr in trs:
+            res = results.get(tr.spec.name)
+            if res is not None:
+                tr.info.update(region_lines=res.lines, agreement=res.agreement)
+        if agreement < cfg.region_min_agreement:
+            return
+        basis, cov = observed_directions(model.solution_cov, cfg.region_max_std_mm, cfg.region_max_std_deg)
+        floor = np.diag(np.r_[np.full(3, cfg.region_floor_mm ** 2),
+                              np.full(model.size - 3, np.radians(cfg.region_floor_deg) ** 2)])
+        ok, d2 = shared.update_model(model, model.solution, basis, cov + basis @ floor @ basis.T)
+        if not ok:
+            return
+        for tr in trs:
+            res = results.get(tr.spec.name)
+            if res is not None and res.agreement >= cfg.region_min_agreement:
+                tr.status, tr.since_meas = Status.TRACKING, 0
+                tr.info["d2"] = d2
+                tr.confidence = max(tr.confidence, res.agreement)
 
     def _region_models(self, key: str, trs: list[_Track]) -> list[tuple[PoseModel, np.ndarray]]:
         """How the region measurement moves one instrument's due parts, with each model's prior
@@ -479,8 +580,23 @@ class Tracker:
             results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                        self.estimator.model.parts, self._kinematic, self.instruments)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
+        # an instrument none of whose parts is tracked starts its state from all of them at once (the
+        # joints from their relative rotations), not from the first one's pose alone
+        starts: dict[int, tuple[InstrumentKalman, dict]] = {}
+        for (tr, _, _, _), res in zip(requests, results):
+            if (isinstance(tr.kf, PartFilter) and not tr.kf.shared.active and res.ok
+                    and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score):
+                starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}))[1][tr.spec.name] = (res.R, res.t)
+        for shared, poses in starts.values():
+            shared.init(poses, time_s, self._est_cov)
+        # with the kinematic fit, the poses of one instrument's parts on a keyframe come from one joint fit:
+        # one measurement of its state, not one per part, so each part's share of it is that much weaker
+        share = Counter(id(tr.kf.shared) for tr, _, _, _ in requests if isinstance(tr.kf, PartFilter))
         unseen: list[tuple[_Track, str]] = []
         for (tr, box, prior, why), res in zip(requests, results):
+            est_cov = self._est_cov
+            if self._kinematic is not None and isinstance(tr.kf, PartFilter) and share[id(tr.kf.shared)] > 1:
+                est_cov = self._est_cov * share[id(tr.kf.shared)]
             tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                            prior_won=bool(res.counts.get("prior_won", 0)),
                            kinematic=bool(res.counts.get("kinematic", 0)))
@@ -494,13 +610,13 @@ class Tracker:
                     # (fusing the filter's own pose again would shrink its covariance for nothing)
                     tr.status, tr.confidence = Status.KEYFRAME, max(conf, tr.confidence)
                     tr.since_meas = 0
-                elif tr.kf.update(res.R, res.t, self._est_cov):
+                elif tr.kf.update(res.R, res.t, est_cov):
                     tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
                     tr.info["d2"] = tr.kf.last_d2
                 elif tr.kf.lost:
                     # the estimator has disagreed with the track on max_rejections frames in a row:
                     # the track is what is wrong
-                    tr.kf.restart(res.R, res.t, self._est_cov, self._widen)
+                    tr.kf.restart(res.R, res.t, est_cov, self._widen)
                     tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
                 else:
                     # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
@@ -508,7 +624,7 @@ class Tracker:
                     tr.info["rejected_d2"] = tr.kf.last_d2
                 tr.since_keyframe = 0
             elif good:
-                tr.kf.init(res.R, res.t, time_s, self._est_cov)
+                tr.kf.init(res.R, res.t, time_s, est_cov)
                 tr.status, tr.confidence = Status.KEYFRAME, conf
                 tr.since_keyframe, tr.since_meas = 0, 0
             elif tr.has_pose and res.ok and res.score > 0.0 and (
