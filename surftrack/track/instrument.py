@@ -88,17 +88,19 @@ class InstrumentKalman:
     def model(self, R: np.ndarray | None = None, x: np.ndarray | None = None) -> ArticulatedModel:
         """The forward kinematics at the state (``R`` nominal root rotation, ``x`` state; default the
         current one), its parameter vector 0 at that state."""
+        return self._kinematics(R, x)[0]
+
+    def _kinematics(self, R: np.ndarray | None = None, x: np.ndarray | None = None
+                    ) -> tuple[ArticulatedModel, dict, dict]:
+        """(model, part poses, their derivatives) at a state, kept for the last state asked for: the
+        parts of one frame ask in turn."""
         R = self.R_ref if R is None else R
         x = self.x if x is None else x
         key = (R.tobytes(), x.tobytes())
         if self._model_cache is None or self._model_cache[0] != key:
             m = ArticulatedModel(self.instrument, self.names, R @ so3_exp(x[6:9]), x[0:3], self.joint_state(x))
             self._model_cache = (key, m, m.poses(np.zeros(m.size)), m.derivatives(np.zeros(m.size)))
-        return self._model_cache[1]
-
-    def _kinematics(self) -> tuple[dict, dict]:
-        self.model()
-        return self._model_cache[2], self._model_cache[3]
+        return self._model_cache[1:]
 
     def _expand(self, D: np.ndarray, model: ArticulatedModel) -> np.ndarray:
         """A (k, 6 + m) derivative in ``model``'s parameters as (k, dim) in the state's error coordinates."""
@@ -110,14 +112,14 @@ class InstrumentKalman:
 
     def part_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """``name``'s pose (R (3, 3), t (3,) mm, model-to-camera) at the current state."""
-        poses, _ = self._kinematics()
+        _, poses, _ = self._kinematics()
         R, t = poses[name]
         return R.copy(), t.copy()
 
     def part_jacobian(self, name: str) -> np.ndarray:
         """(6, dim): d(``name``'s pose step: position mm camera frame, body rotation rad) / d(state error)."""
-        _, D = self._kinematics()
-        return self._expand(D[name], self.model())
+        m, _, D = self._kinematics()
+        return self._expand(D[name], m)
 
     # ------------------------------------------------------------------ init / predict
     def init(self, poses: Mapping[str, tuple[np.ndarray, np.ndarray]], time: float, meas_cov: np.ndarray) -> None:
@@ -270,8 +272,7 @@ class InstrumentKalman:
     def part_step(self, step: FilterStep, name: str) -> FilterStep:
         """Part ``name``'s view of the instrument step ``step`` (a 12-state :class:`FilterStep`: its pose,
         its velocity and angular velocity, their covariance, to first order; no prior)."""
-        m = self.model(step.R, step.x)
-        poses, D = m.poses(np.zeros(m.size)), m.derivatives(np.zeros(m.size))
+        m, poses, D = self._kinematics(step.R, step.x)
         R, t = poses[name]
         J = self._expand(D[name], m)  # (6, dim) pose step / state error
         M = np.zeros((12, self.dim))  # the part's 12-state error as a linear map of the instrument's
@@ -283,7 +284,7 @@ class InstrumentKalman:
         x[0:3] = t
         x[3:6], x[9:12] = M[3:6] @ step.x, M[9:12] @ step.x
         P = M @ step.P @ M.T
-        return FilterStep(step.time, R, x, 0.5 * (P + P.T), None)
+        return FilterStep(step.time, R.copy(), x, 0.5 * (P + P.T), None)
 
 
 @dataclass(frozen=True)
@@ -302,8 +303,8 @@ class JointReading:
 def read_joints(kf: InstrumentKalman, step: FilterStep) -> JointReading:
     """The joints, their rates and uncertainties, and the tool tip of instrument state ``step`` of ``kf``
     (no fit: the state is the instrument's configuration)."""
-    inst, m = kf.instrument, kf.model(step.R, step.x)
-    poses = m.poses(np.zeros(m.size))
+    inst = kf.instrument
+    m, poses, _ = kf._kinematics(step.R, step.x)
     by_part = {p: se3(*poses[n]) for p, n in kf.names.items()}
     q = kf.joint_state(step.x)
     base, roll = base_from_root(inst, by_part[kf.root], q)
