@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 
 from surftrack.geometry import PinholeCamera, project_pose_jacobian, se3, se3_inv
-from surftrack.geometry.transforms import skew, so3_exp, so3_log, so3_right_jacobian
+from surftrack.geometry.transforms import skew, so3_exp, so3_right_jacobian
 from surftrack.instruments import Instrument, JointState
 from surftrack.instruments.kinematics import JOINT_NAMES
 from surftrack.render.renderer import Renderer
@@ -406,25 +406,36 @@ class ArticulatedModel(PoseModel):
             out[n] = (T[:3, :3], T[:3, 3])
         return out
 
-    def derivatives(self, x: np.ndarray, h: float = 1e-5) -> dict[str, np.ndarray]:
-        """The root's rows are exact; the joints' columns by central differences."""
-        base = self.poses(x)
+    def derivatives(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """Exact for the root's pose and, in closed form, for the joints: a joint step turns every part
+        below the joint about the joint's axis at its origin (a joint at a limit is differentiated as if
+        free)."""
         R_root = self.R0 @ so3_exp(x[3:6])
+        root_T = se3(R_root, self.t0 + x[:3])
+        chain = self.instrument.chain
+        F = self.instrument.forward(np.eye(4), self.joint_state(x))
+        to_root = root_T @ se3_inv(F[self.chain_names[0]])
+        cam = {p: to_root @ T for p, T in F.items()}  # every part's pose in the camera
         Jr = so3_right_jacobian(x[3:6])  # d(root body rotation) / d(its parameters) away from x = 0
+        t_root = cam[self.chain_names[0]][:3, 3]
         D = {}
-        for n, (R, t) in base.items():
+        for p, n in zip(self.chain_names, self.parts):
+            R, t = cam[p][:3, :3], cam[p][:3, 3]
             d = np.zeros((6, self.size))
             d[:3, :3] = np.eye(3)  # a root translation step moves every part with it (camera frame)
             d[3:, 3:6] = R.T @ R_root @ Jr  # a root body rotation, in this part's body frame
             # and the part's lever arm: t_n = t_root + R_root r  ->  dt_n = -R_root [r]_x dtheta
-            r = R_root.T @ (t - base[self.parts[0]][1])
-            d[:3, 3:6] = -R_root @ skew(r) @ Jr
+            d[:3, 3:6] = -R_root @ skew(R_root.T @ (t - t_root)) @ Jr
+            a = p
+            while a is not None and a != self.chain_names[0]:
+                joint = chain.joints[a]
+                axis = np.asarray(joint.axis, np.float64) / np.linalg.norm(joint.axis)
+                w_cam = cam[a][:3, :3] @ axis  # the joint's axis in the camera, through its origin
+                for col, k in enumerate(self.joints):
+                    c = joint.coefficients.get(JOINT_NAMES[k], 0.0)
+                    if c:
+                        d[:3, 6 + col] += c * np.cross(w_cam, t - cam[a][:3, 3])
+                        d[3:, 6 + col] += c * (R.T @ w_cam)
+                a = joint.parent
             D[n] = d
-        for j in range(6, self.size):
-            e = np.zeros(self.size)
-            e[j] = h
-            up, dn = self.poses(x + e), self.poses(x - e)
-            for n, (R, t) in base.items():
-                D[n][:3, j] = (up[n][1] - dn[n][1]) / (2 * h)
-                D[n][3:, j] = (so3_log(R.T @ up[n][0]) - so3_log(R.T @ dn[n][0])) / (2 * h)
         return D
