@@ -384,8 +384,8 @@ class PartFilter:
         """Put this part on the state: start the state from it when none of its instrument's parts is
         tracked, else fuse it into the state the others hold, never gated out (gated, the state's drift
         while the part was away kept it out: docs/decisions.md). A measurement the gate would reject is
-        a jump: it is fused as :meth:`restart` does, the prediction widened and cut loose from the rates
-        (fused plainly, a 100 deg disagreement became a roll rate that spun the instrument)."""
+        a jump: the prediction is cut loose from the rates before it is fused (fused plainly, a 100 deg
+        disagreement became a roll rate that spun the instrument)."""
         cov = self.config.meas_cov() if meas_cov is None else meas_cov
         s = self.shared
         self.rejections_in_a_row, self.last_d2 = 0, None
@@ -397,8 +397,9 @@ class PartFilter:
         if time > s.time:
             s.predict(time)
         ok, self.last_d2 = s.update_part(self.name, R, t, cov, gate=True)
-        if not ok:
-            self._jump(R, t, cov)
+        if not ok:  # a jump: cut loose from the rates (it says nothing about them), the pose kept as it is
+            s.widen(np.zeros((6, 6)), 0.0)
+            s.update_part(self.name, R, t, cov, gate=False)
         s.active.add(self.name)
 
     def predict(self, time: float) -> None:
