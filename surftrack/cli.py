@@ -555,14 +555,16 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
                     "preset's; 5: about 4x the keyframe time, better poses)")
     tk.add_argument("--config", help="tracking YAML or a name in configs/track: default (outlines between keyframes), "
-                                     "every_frame (the estimator on every frame)")
+                                     "every_frame (the estimator on every frame), articulated (one state per "
+                                     "instrument, its parts views of it)")
     tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
     tk.add_argument("--start", type=float, help="first second of video to track")
     tk.add_argument("--end", type=float, help="last second of video to track")
     tk.add_argument("--overlay", metavar="OUT.mp4", help="also write a video with axes, outlines and status")
     tk.add_argument("--export-tum", metavar="DIR", help="also write one TUM trajectory per part (metres)")
     tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
-    tk.add_argument("--joints-csv", metavar="CSV", help="also write the fitted joint angles per frame as CSV")
+    tk.add_argument("--joints-csv", metavar="CSV",
+                    help="also write the joint angles per frame (degrees, with their standard deviations) as CSV")
     tk.add_argument("--no-joints", action="store_true", help="skip the per-frame joint-angle fit")
     tk.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
                     help="your instrument's description (the YAML its model was trained from), for joint angles "
@@ -588,7 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--workers", type=int, help="videos tracked at once on a local Ray (default: the cores)")
     ba.add_argument("--force", action="store_true", help="redo videos an earlier run of the batch finished")
     ba.add_argument("--model", help="checkpoint (default: the bundled model)")
-    ba.add_argument("--config", help="tracking YAML or a name in configs/track: default, every_frame")
+    ba.add_argument("--config", help="tracking YAML or a name in configs/track: default, every_frame, articulated")
     ba.add_argument("--keyframe-every", type=int, help="frames between estimator runs on tracked parts")
     ba.add_argument("--causal", action="store_true", help="no smoothing with later frames (see track --causal)")
     ba.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")

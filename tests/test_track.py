@@ -270,14 +270,18 @@ def test_box_helpers():
     assert box is None and inside == 0.0
 
 
-def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
+@pytest.mark.parametrize("articulated", [False, True])
+def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys, articulated):
     """`surftrack VIDEO --boxes ...`: every frame of every tracked part gets a status, poses go to the
-    MCAP in metres on the frame's time, and the unknown second tool is reported, not tracked."""
+    MCAP in metres on the frame's time, and the unknown second tool is reported, not tracked. Joint
+    angles come from a per-frame fit (part by part) or, with one state per instrument, off that state
+    with their standard deviations."""
     out = tmp_path / "run.mcap"
     # the untrained model's poses score low: accept them to exercise every path; as they would stay in the
     # boxes' crops, a part whose predicted box is partly outside the image counts as gone (the tool leaves)
     cfg = tmp_path / "accept_all.yaml"
-    cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\nmin_visible: 0.9\n")
+    cfg.write_text("init_min_score: -1000000000.0\ninit_min_inliers: 0\nmin_visible: 0.9\n"
+                   f"articulated: {str(articulated).lower()}\n")
     rc = main([str(clip / "video.mp4"), "--boxes", str(clip / "det.json"), "--camera", str(clip / "camera.json"),
                "--model", str(tiny_ckpt), "-o", str(out), "--images", "--quiet", "--keyframe-every", "5",
                "--config", str(cfg), "--joints-csv", str(tmp_path / "joints.csv")])
@@ -327,6 +331,14 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys):
                        for i in range(n_frames))
     rows = (tmp_path / "joints.csv").read_text().splitlines()
     assert rows[0].startswith("time_s,instrument,roll_deg") and len(rows) == 1 + frames_posed
+    header, first = rows[0].split(","), rows[1].split(",")
+    opening_std, rms = first[header.index("opening_std_deg")], first[header.index("rms_mm")]
+    if articulated:  # read off the state: standard deviations, nothing fitted
+        assert "/instruments/large_needle_driver.0/joints_std" in topics
+        assert float(opening_std) > 0 and rms == ""
+    else:
+        assert "/instruments/large_needle_driver.0/joints_std" not in topics
+        assert opening_std == "" and float(rms) >= 0
     # `surftrack analyze` reads it back
     rc = main(["analyze", str(out), "--png", str(tmp_path / "a.png")])
     text = capsys.readouterr().out
@@ -634,7 +646,8 @@ def test_confidence_falls_with_the_pose_covariance_and_a_rejected_estimate(lnd_p
 
 def test_the_every_frame_config_is_the_default_without_the_region_measurement():
     """configs/track/every_frame.yaml repeats the default file: it may differ only in what makes it run
-    the estimator on every frame; the default file and TrackConfig's defaults agree."""
+    the estimator on every frame; articulated.yaml only in the one state per instrument; the default
+    file and TrackConfig's defaults agree."""
     from surftrack.track import load_track_config
 
     default, every = load_track_config().to_dict(), load_track_config("every_frame").to_dict()
@@ -644,6 +657,11 @@ def test_the_every_frame_config_is_the_default_without_the_region_measurement():
         d.pop("keyframe_every")
         d.pop("region")
     assert every == default
+    articulated = load_track_config("articulated").to_dict()
+    assert articulated.pop("articulated") and not default.pop("articulated")
+    articulated.pop("keyframe_every")
+    articulated.pop("region")
+    assert articulated == default
 
 
 def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):

@@ -1,4 +1,6 @@
-"""Joint angles from tracked part poses, frame by frame (the kinematics output of a tracking run).
+"""Joint angles fitted to tracked part poses, frame by frame: the kinematics output of a run whose
+instrument is tracked part by part (``articulated: false``); with one articulated state per instrument
+(:mod:`surftrack.track.instrument`) the joints are read off that state instead.
 
 :class:`ArticulationTracker` fits each instrument's articulated configuration (base pose on the shaft
 axis, roll, wrist pitch, wrist yaw, jaw opening; :func:`surftrack.instruments.fit_configuration`) to

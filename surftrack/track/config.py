@@ -60,12 +60,15 @@ class TrackConfig:
     every_frame.yaml`` keeps that mode; docs/results/2026-12-03-region.md). It needs a keyframe cadence
     above 1: a part due for the estimator is not measured by its silhouette on that frame.
 
-    ``articulated``: one filter state per described instrument whose root part (the shaft) is tracked
-    (:mod:`surftrack.track.instrument`: the root's pose and the joints, each with its rate); its parts are
-    views of it through the forward kinematics, so every measurement of one part (keyframe, silhouette)
-    moves the others consistently and a hidden part keeps the pose the rest implies. The joints'
-    white-noise acceleration is ``joint_accel_std_rad_s2`` (8 let the jaws jitter 1.1-1.2 deg a frame on
-    the tuning clip, 2 kept them at 0.5). On a keyframe with the kinematic fit, the instrument's parts'
+    ``articulated`` (``configs/track/articulated.yaml``; off by default): one filter state per described
+    instrument whose root part (the shaft) is tracked (:mod:`surftrack.track.instrument`: the root's pose
+    and the joints, each with its rate); its parts are views of it through the forward kinematics, so
+    every measurement of one part (keyframe, silhouette) moves the others consistently, a hidden part
+    keeps the pose the rest implies and the joints are read off the state. On eight held-out clips it
+    scored +6.2 / -4.4 / +4.0 / -1.7 points of ADD-10 against a filter per part, with a confidence that
+    ranks the parts' errors worse (docs/results/2026-12-03-articulated.md), so it is not the default
+    yet. The joints' white-noise acceleration is ``joint_accel_std_rad_s2`` (8 let the jaws jitter 1.1-1.2
+    deg a frame on the tuning clip, 2 kept them at 0.5). On a keyframe with the kinematic fit, the instrument's parts'
     poses come from one joint fit: each is fused with the estimator's covariance times the number of
     them (one measurement of the state, not one per part).
 
@@ -98,7 +101,7 @@ class TrackConfig:
     region_joint_std_deg: float = 10.0
     region_max_std_mm: float = 1.0
     region_max_std_deg: float = 3.0
-    articulated: bool = True
+    articulated: bool = False
     joint_accel_std_rad_s2: float = 2.0
     min_box_score: float = 0.3
     min_iou: float = 0.2
