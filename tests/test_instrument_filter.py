@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from surftrack.geometry import rotation_angle_deg, se3, so3_exp
+from surftrack.geometry.transforms import so3_log
 from surftrack.instruments import JointState, fit_configuration, joints_from_poses, load_instrument
 from surftrack.instruments.kinematics import rcm_base_pose
 from surftrack.track.instrument import InstrumentKalman, PartFilter, read_joints
@@ -109,13 +110,27 @@ def test_part_view_and_jacobian():
     kf = InstrumentKalman(LND, NAMES)
     kf.init(truth[0][0], 0.0, MEAS)
     step = kf.snapshot()
+    # give the state rates; the view's velocity and angular velocity are the part's pose changing by them
+    x = step.x.copy()
+    x[3:6], x[9:12], x[kf.q_index + kf.n] = [5.0, -3.0, 2.0], [0.2, -0.1, 0.3], [0.4, -0.2, 0.5]
+    step = type(step)(step.time, step.R, x, step.P, step.prior)
+    dt = 1e-6
+    ahead = x.copy()
+    ahead[0:3] += x[3:6] * dt
+    ahead[kf.q_index] += x[kf.q_index + kf.n] * dt
+    R_ahead = step.R @ so3_exp(x[9:12] * dt)
     for n in NAMES.values():
         view = kf.part_step(step, n)
+        later = kf.part_step(type(step)(0.0, R_ahead, ahead, step.P, None), n)
+        assert np.allclose(view.x[3:6], (later.x[0:3] - view.x[0:3]) / dt, atol=1e-3)
+        assert np.allclose(view.x[9:12], so3_log(view.R.T @ later.R) / dt, atol=1e-3)
+    for n in NAMES.values():
+        view = kf.part_step(kf.snapshot(), n)
         R, t = kf.part_pose(n)
         assert np.allclose(view.pose[0], R) and np.allclose(view.pose[1], t)
         # the view's pose covariance is the state's through the part's Jacobian
         J = kf.part_jacobian(n)
-        assert np.allclose(view.pose_cov, J @ step.P @ J.T)
+        assert np.allclose(view.pose_cov, J @ kf.snapshot().P @ J.T)
     # the Jacobian against a finite step of the state
     h = 1e-6
     x0, R0 = kf.x, kf.R_ref.copy()
@@ -129,7 +144,6 @@ def test_part_view_and_jacobian():
         m = kf.model(R_ref, x)
         Rp, tp = m.poses(np.zeros(m.size))[NAMES["jaw_right"]]
         Rb, tb = kf.part_pose(NAMES["jaw_right"])
-        from surftrack.geometry.transforms import so3_log
         num = np.r_[(tp - tb) / h, so3_log(Rb.T @ Rp) / h]
         assert np.allclose(num, J[:, i], atol=1e-3), (i, num, J[:, i])
 
@@ -191,8 +205,17 @@ def test_joints_read_off_the_state_match_the_truth_and_the_fit():
     for j in ("roll", "pitch", "yaw", "opening"):
         assert abs(getattr(reading.fit.joints, j) - getattr(q, j)) < math.radians(0.5), j
         assert 0.0 < reading.std[j] < math.radians(5.0), j
-    # the rates of a joint moving as sin: the state carries them
+    # the rates of joints moving as sin: the state carries them; the roll's reference follows the
+    # shaft's direction, so the roll's rate comes from every turn of the shaft
     assert abs(reading.rates["opening"] - 0.4 * 3.0 * math.cos(3.0 * 39 / FPS)) < 0.3
+    step = kf.snapshot()
+    x = step.x.copy()
+    x[9:12] = [0.3, -0.2, 0.5]  # a shaft turning about all three axes: the roll's rate is the roll's change
+    step = type(step)(step.time, step.R, x, step.P, None)
+    dt = 1e-6
+    later = type(step)(step.time, step.R @ so3_exp(x[9:12] * dt), x, step.P, None)
+    d_roll = math.remainder(read_joints(kf, later).fit.joints.roll - read_joints(kf, step).fit.joints.roll, 2 * math.pi)
+    assert read_joints(kf, step).rates["roll"] == pytest.approx(d_roll / dt, abs=1e-3)
     # the same base pose and joints as the per-frame fit to the same part poses
     fit = fit_configuration(LND, {p: poses[NAMES[p]] for p in LND.part_names})
     assert np.allclose(fit.base_t, reading.fit.base_t, atol=0.05)
@@ -219,4 +242,22 @@ def test_a_part_joining_far_off_is_a_jump_not_a_spin():
     views["shaft"].init(R @ so3_exp(np.radians([0.0, 0.0, 100.0])), t, 1 / FPS, MEAS)  # rolled 100 deg
     assert views["shaft"].initialized
     assert np.linalg.norm(kf.x[9:12] - omega0) < 0.5, kf.x[9:12]
-    assert rotation_angle_deg(views["shaft"].pose[0], R) > 50.0  # it went to the measurement
+    assert rotation_angle_deg(views["shaft"].pose[0], R @ so3_exp(np.radians([0.0, 0.0, 100.0]))) < 30.0
+
+
+def test_a_restart_keeps_the_other_parts_updates_of_the_frame():
+    """Widening for one part's restart acts on the current state: the shaft's keyframe fused earlier in
+    the same frame stays (going back to the frame's prediction would erase it)."""
+    truth = _truth(3)
+    kf = InstrumentKalman(LND, NAMES)
+    views = {p: PartFilter(kf, NAMES[p]) for p in LND.part_names}
+    kf.init(truth[0][0], 0.0, MEAS)
+    kf.predict(1 / FPS)
+    predicted = kf.part_pose(NAMES["shaft"])[1]
+    R, t = truth[1][0][NAMES["shaft"]]
+    views["shaft"].update(R, t + np.array([3.0, 0.0, 0.0]), MEAS)  # the keyframe moves the shaft 3 mm
+    moved = kf.part_pose(NAMES["shaft"])[1]
+    assert np.linalg.norm(moved - predicted) > 1.0
+    R_j, t_j = views["jaw_left"].pose
+    views["jaw_left"].restart(R_j @ so3_exp(np.radians([0.0, 20.0, 0.0])), t_j, MEAS, np.eye(6))
+    assert np.linalg.norm(kf.part_pose(NAMES["shaft"])[1] - moved) < 0.5

@@ -19,13 +19,14 @@ the summed duration of those steps, max speed = the largest step length / step d
 root mean square of the central third difference over 5 consecutive tracked frames (mm/s^3; a smoothness
 figure of skill assessment). ``position_std_mm``: the mean over tracked frames of the pose's 3D position
 standard deviation, from the filter's covariance the tracker writes in the status (None in files
-without it). ``path_length_sd_mm``: the sum over the counted steps of the speed's standard deviation
-(status ``speed_std_mm_s``) times the step's duration: the path's standard deviation were the speed
-errors of all frames fully correlated, an upper bound on it (the file holds no cross-frame covariance;
-smoothed errors are strongly correlated over a second or so); ``mean_speed_sd_mm_s`` is that over the
-steps' duration and ``max_speed_sd_mm_s`` the speed's standard deviation at the fastest step. The jaw
-opening's ``std`` is the mean of its standard deviation (``/instruments/<name>/joints_std``) over the
-frames that have one.
+without it). ``path_length_sd_bound_mm``: the sum over the counted steps of the speed's standard
+deviation (status ``speed_std_mm_s``) times the step's duration: the path's standard deviation were the
+speed errors of all frames fully correlated, an upper bound on it (the file holds no cross-frame
+covariance; smoothed errors are strongly correlated over a second or so). It does not include the bias
+that noise adds to a path length (jitter only lengthens it); ``mean_speed_sd_bound_mm_s`` is the bound
+over the steps' duration. The jaw opening's ``mean_sd`` is the mean over the frames that have one of
+its standard deviation (``/instruments/<name>/joints_std``): the filter's uncertainty on a frame, not
+the opening's spread over time.
 
 :func:`format_analysis` renders the summary as a text table, :func:`plot_analysis` as a PNG.
 """
@@ -108,9 +109,8 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     path_sd = sum(sd * dt for sd, dt in steps_sd) if known else None
     return {
         "path_length_mm": length,
-        "path_length_sd_mm": path_sd,
-        "mean_speed_sd_mm_s": path_sd / duration if known and duration > 0 else None,
-        "max_speed_sd_mm_s": steps_sd[int(np.argmax(steps_v))][0] if known else None,
+        "path_length_sd_bound_mm": path_sd,
+        "mean_speed_sd_bound_mm_s": path_sd / duration if known and duration > 0 else None,
         "mean_speed_mm_s": length / duration if duration > 0 else None,
         "max_speed_mm_s": max(steps_v) if steps_v else None,
         "rms_jerk_mm_s3": float(np.sqrt(np.mean(np.square(jerks)))) if jerks else None,
@@ -139,11 +139,11 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         {"file": str,
          "parts": {name: {"pose_frames", "tracked_frames", "t_start_s", "t_end_s", "span_s",
                           "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s", "rms_jerk_mm_s3",
-                          "position_std_mm", "path_length_sd_mm", "mean_speed_sd_mm_s", "max_speed_sd_mm_s",
+                          "position_std_mm", "path_length_sd_bound_mm", "mean_speed_sd_bound_mm_s",
                           "series": {"time_s", "x_mm", "y_mm", "z_mm", "tracked",
                                      "speed_time_s", "speed_mm_s"}}},
          "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
-                                "opening_deg": {"min", "mean", "max", "std"} or None,
+                                "opening_deg": {"min", "mean", "max", "mean_sd"} or None,
                                 "tool_tip": {"frames", "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
                                              "rms_jerk_mm_s3"} or None,
                                 "series": {"time_s", "<joint>_deg": [...]}}}}
@@ -205,9 +205,8 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             "path_length_mm": motion["path_length_mm"],
             "mean_speed_mm_s": motion["mean_speed_mm_s"],
             "max_speed_mm_s": motion["max_speed_mm_s"],
-            "path_length_sd_mm": motion["path_length_sd_mm"],
-            "mean_speed_sd_mm_s": motion["mean_speed_sd_mm_s"],
-            "max_speed_sd_mm_s": motion["max_speed_sd_mm_s"],
+            "path_length_sd_bound_mm": motion["path_length_sd_bound_mm"],
+            "mean_speed_sd_bound_mm_s": motion["mean_speed_sd_bound_mm_s"],
             "rms_jerk_mm_s3": motion["rms_jerk_mm_s3"],
             "position_std_mm": (float(np.mean(sds)) if (sds := [v for ns, v in pos_std.get(name, {}).items()
                                                                  if tracked.get(ns)]) else None),
@@ -238,7 +237,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             "t_end_s": msgs[-1][0] * 1e-9,
             "joint_names": names,
             "opening_deg": ({"min": min(opening), "mean": float(np.mean(opening)), "max": max(opening),
-                             "std": float(np.mean(opening_sd)) if opening_sd else None}
+                             "mean_sd": float(np.mean(opening_sd)) if opening_sd else None}
                             if opening else None),
             "series": series,
         }
@@ -247,11 +246,6 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
 
 def _num(v: float | None, fmt: str) -> str:
     return "-" if v is None else format(v, fmt)
-
-
-def _pm(v: float | None, sd: float | None) -> str:
-    """``v +- sd`` with one decimal (``-`` without a value, ``v`` alone without ``sd``)."""
-    return "-" if v is None else f"{v:.1f}" if sd is None else f"{v:.1f} +- {sd:.1f}"
 
 
 def format_analysis(summary: dict) -> str:
@@ -263,25 +257,27 @@ def format_analysis(summary: dict) -> str:
     else:
         w = max(4, *(len(n) for n in parts))
         lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'path_mm':>15}  {'mean_mm/s':>13}  {'max_mm/s':>13}  {'jerk_mm/s3':>10}  {'pos_std_mm':>10}")
+                     f"{'path_mm':>9}  {'path_sd<=':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}  {'jerk_mm/s3':>10}  "
+                     f"{'pos_std_mm':>10}")
         for n, p in parts.items():
             lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  "
                          f"{_num(p['t_start_s'], '8.3f'):>8}  {_num(p['t_end_s'], '8.3f'):>8}  "
-                         f"{_pm(p['path_length_mm'], p.get('path_length_sd_mm')):>15}  "
-                         f"{_pm(p['mean_speed_mm_s'], p.get('mean_speed_sd_mm_s')):>13}  "
-                         f"{_pm(p['max_speed_mm_s'], p.get('max_speed_sd_mm_s')):>13}  {_num(p['rms_jerk_mm_s3'], '10.0f'):>10}  "
+                         f"{p['path_length_mm']:>9.1f}  {_num(p.get('path_length_sd_bound_mm'), '9.1f'):>9}  "
+                         f"{_num(p['mean_speed_mm_s'], '9.1f'):>9}  "
+                         f"{_num(p['max_speed_mm_s'], '9.1f'):>9}  {_num(p['rms_jerk_mm_s3'], '10.0f'):>10}  "
                          f"{_num(p['position_std_mm'], '10.2f'):>10}")
     insts = summary["instruments"]
     if insts:
         w = max(10, *(len(n) for n in insts))
         lines.append("")
         lines.append(f"{'instrument':<{w}}  {'frames':>6}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'opening_deg min / mean / max':>36}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
+                     f"{'opening_deg min / mean / max':>28}  {'sd_deg':>8}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
                      f"{'tip_max_mm/s':>12}  {'tip_jerk_mm/s3':>14}")
         for n, i in insts.items():
             o, tip = i["opening_deg"], i.get("tool_tip") or {}
-            ostr = "-" if o is None else f"{o['min']:.1f} / {_pm(o['mean'], o.get('std'))} / {o['max']:.1f}"
-            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>36}  "
+            ostr = "-" if o is None else f"{o['min']:.1f} / {o['mean']:.1f} / {o['max']:.1f}"
+            osd = _num(None if o is None else o.get("mean_sd"), "8.1f")
+            lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}  {osd:>8}  "
                          f"{_num(tip.get('path_length_mm'), '11.1f'):>11}  {_num(tip.get('mean_speed_mm_s'), '13.1f'):>13}  "
                          f"{_num(tip.get('max_speed_mm_s'), '12.1f'):>12}  {_num(tip.get('rms_jerk_mm_s3'), '14.0f'):>14}")
     return "\n".join(lines)

@@ -149,7 +149,7 @@ class JointsSink:
             rates: dict[str, float] = {}
             std: dict[str, float] | None = None
             if shared is not None:
-                reading = read_joints(shared[1], shared[2])
+                reading = read_joints(shared[1], shared[2], [s.spec.name for s in mine if s.R is not None])
                 fit, tip, rates, std = reading.fit, reading.tip, reading.rates, reading.std
             else:
                 fit = fitter.update(mine)

@@ -18,7 +18,7 @@ state, so the tracker's per-part logic (keyframes, gating, restarts, occlusion) 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -246,22 +246,25 @@ class InstrumentKalman:
         return self._fuse(basis @ step, H, np.asarray(cov, np.float64), gate, len(basis))
 
     def widen(self, pose_cov: np.ndarray, joint_var: float) -> None:
-        """Go back to this frame's prediction and add ``pose_cov`` (6x6) to the root pose and
-        ``joint_var`` to every joint, cut loose from the rates (for a measurement the state disbelieves,
-        :meth:`PoseKalman.restart`)."""
-        if self.prior is None:
-            return
-        P = self.prior.P.copy()
-        P[np.ix_(_POSE, _POSE)] += pose_cov
-        P[12:12 + self.n, 12:12 + self.n] += np.eye(self.n) * joint_var
+        """Add ``pose_cov`` (6x6) to the root pose's covariance and ``joint_var`` to every joint's, and cut
+        the pose and joints loose from the rates (a jump says nothing about the velocities): for a
+        measurement the state disbelieves (:meth:`PoseKalman.restart`). Applied to the current state, so
+        the other parts' updates of this frame stay; the frame's prediction gets the same widening (as
+        extra process noise for the smoother)."""
         pose = np.r_[_POSE, np.arange(12, 12 + self.n)]
         rates = np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
-        P[np.ix_(pose, rates)] = 0.0
-        P[np.ix_(rates, pose)] = 0.0
-        self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, P)
-        self.R_ref = self.prior.R.copy()
-        self.kf.x = self.prior.x.reshape(-1, 1).copy()
-        self.kf.P = P.copy()
+
+        def widened(P: np.ndarray) -> np.ndarray:
+            P = P.copy()
+            P[np.ix_(_POSE, _POSE)] += pose_cov
+            P[12:12 + self.n, 12:12 + self.n] += np.eye(self.n) * joint_var
+            P[np.ix_(pose, rates)] = 0.0
+            P[np.ix_(rates, pose)] = 0.0
+            return P
+
+        self.kf.P = widened(self.kf.P)
+        if self.prior is not None:
+            self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, widened(self.prior.P))
         self._model_cache = None
 
     # ------------------------------------------------------------------ output
@@ -300,25 +303,32 @@ class JointReading:
     tip_cov: np.ndarray | None
 
 
-def read_joints(kf: InstrumentKalman, step: FilterStep) -> JointReading:
+def read_joints(kf: InstrumentKalman, step: FilterStep, parts: Sequence[str] | None = None) -> JointReading:
     """The joints, their rates and uncertainties, and the tool tip of instrument state ``step`` of ``kf``
-    (no fit: the state is the instrument's configuration)."""
+    (no fit: the state is the instrument's configuration). ``parts``: the names of the parts posed on
+    this frame (default all): the tool tip comes from those only."""
     inst = kf.instrument
     m, poses, _ = kf._kinematics(step.R, step.x)
     by_part = {p: se3(*poses[n]) for p, n in kf.names.items()}
+    posed = {p: T for p, T in by_part.items() if parts is None or kf.names[p] in parts}
     q = kf.joint_state(step.x)
     base, roll = base_from_root(inst, by_part[kf.root], q)
     joints = JointState(**{**q.as_dict(), "roll": roll})
-    axis = np.asarray(inst.chain.joints[kf.root].axis, np.float64)
-    axis = axis / np.linalg.norm(axis)
-    rates = {"roll": float(axis @ step.x[9:12])}
-    var = {"roll": float(axis @ step.P[6:9, 6:9] @ axis)}
+    # the roll is measured from a reference that follows the shaft's direction, so it moves with every
+    # turn of the shaft, not only with turns about its axis: its gradient in the root's body rotation
+    g, h = np.zeros(3), 1e-6
+    for i in range(3):
+        T = by_part[kf.root].copy()
+        T[:3, :3] = T[:3, :3] @ so3_exp(np.eye(3)[i] * h)
+        g[i] = math.remainder(base_from_root(inst, T, q)[1] - roll, 2 * math.pi) / h
+    rates = {"roll": float(g @ step.x[9:12])}
+    var = {"roll": float(g @ step.P[6:9, 6:9] @ g)}
     for j, k in enumerate(kf.joints):
         rates[JOINT_NAMES[k]] = float(step.x[12 + kf.n + j])
         var[JOINT_NAMES[k]] = float(step.P[12 + j, 12 + j])
     fit = JointFit(base[:3, :3], base[:3, 3], joints, {n: n in var for n in JOINT_NAMES},
-                   tuple(n for n in JOINT_NAMES if n not in var), {}, tuple(kf.names), None, True)
-    tip = inst.tool_tip(by_part)
+                   tuple(n for n in JOINT_NAMES if n not in var), {}, tuple(posed), None, True)
+    tip = inst.tool_tip(posed)
     tip_cov = None
     if tip is not None:
         # the tip's position through the kinematics, differentiated numerically in the state's pose and joints
@@ -327,7 +337,7 @@ def read_joints(kf: InstrumentKalman, step: FilterStep) -> JointReading:
             e = np.zeros(m.size)
             e[i] = h
             moved_poses = m.poses(e)
-            moved = {p: se3(*moved_poses[n]) for p, n in kf.names.items()}
+            moved = {p: se3(*moved_poses[kf.names[p]]) for p in posed}
             J[:, i] = (inst.tool_tip(moved)[1] - tip[1]) / h
         E = kf._expand(np.eye(m.size), m)
         tip_cov = J @ (E @ step.P @ E.T) @ J.T
@@ -384,8 +394,8 @@ class PartFilter:
         """Put this part on the state: start the state from it when none of its instrument's parts is
         tracked, else fuse it into the state the others hold, never gated out (gated, the state's drift
         while the part was away kept it out: docs/decisions.md). A measurement the gate would reject is
-        a jump: the prediction is cut loose from the rates before it is fused (fused plainly, a 100 deg
-        disagreement became a roll rate that spun the instrument)."""
+        a jump, fused as :meth:`restart` fuses one (fused plainly, a 100 deg disagreement became a roll
+        rate that spun the instrument)."""
         cov = self.config.meas_cov() if meas_cov is None else meas_cov
         s = self.shared
         self.rejections_in_a_row, self.last_d2 = 0, None
@@ -397,9 +407,8 @@ class PartFilter:
         if time > s.time:
             s.predict(time)
         ok, self.last_d2 = s.update_part(self.name, R, t, cov, gate=True)
-        if not ok:  # a jump: cut loose from the rates (it says nothing about them), the pose kept as it is
-            s.widen(np.zeros((6, 6)), 0.0)
-            s.update_part(self.name, R, t, cov, gate=False)
+        if not ok:
+            self._jump(R, t, cov)
         s.active.add(self.name)
 
     def predict(self, time: float) -> None:
@@ -421,9 +430,6 @@ class PartFilter:
         instrument's prediction and fuse the measurement ungated. The root part's disagreement widens the
         root's pose (by ``widen``) and the joints (by ``widen_joint_deg``); another part's only the joints,
         which is all it can tell apart from the rest of its instrument."""
-        if self.shared.prior is None:
-            self.init(R_meas, t_meas, self.shared.time, meas_cov)
-            return
         self._jump(R_meas, t_meas, meas_cov, widen)
 
     def _jump(self, R: np.ndarray, t: np.ndarray, cov: np.ndarray, widen: np.ndarray | None = None) -> None:

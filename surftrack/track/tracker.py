@@ -256,6 +256,7 @@ class Tracker:
         self._region: RegionTracker | None = None
         self._region_specs = list(specs)
         self._joints: dict[str, JointState] = {}  # instrument key -> the joints its last accepted fit found
+        self._set_poses: dict[str, tuple[float, dict]] = {}  # instrument key -> (time, poses given by set_pose)
 
     def _region_tracker(self) -> RegionTracker:
         """The region measurement's renderer and colour models, made on first use (a GL context)."""
@@ -313,14 +314,26 @@ class Tracker:
     def set_pose(self, track_id: int, R: np.ndarray, t: np.ndarray, time_s: float) -> None:
         """(Re-)initialise a part from a pose known from elsewhere (e.g. a human annotation) at
         ``time_s``, the time of the frame about to be stepped or of the last one; flow points are picked
-        on the next :meth:`step`'s frame."""
+        on the next :meth:`step`'s frame. The parts of an instrument with one state that are set at the
+        same time start that state together (it holds every given pose, not a blend of them)."""
         tr = next((x for x in self.tracks if x.spec.track_id == track_id), None)
         if tr is None:
             raise KeyError(f"no part with track id {track_id}")
+        R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
         if isinstance(tr.kf, PartFilter):
             tr.kf.deactivate()
-        tr.kf = tr.new_filter()
-        tr.kf.init(np.asarray(R, np.float64), np.asarray(t, np.float64), time_s - 1e-6, self._est_cov)
+            key = f"{tr.spec.instrument}.{tr.spec.instance}"
+            when, poses = self._set_poses.get(key, (None, {}))
+            poses = {**poses, tr.spec.name: (R, t)} if when == time_s else {tr.spec.name: (R, t)}
+            self._set_poses[key] = (time_s, poses)
+            tr.kf = tr.new_filter()
+            tr.kf.shared.init(poses, time_s - 1e-6, self._est_cov)
+            # the instrument's other tracked parts stay on it, now placed by the state that holds this pose
+            tr.kf.shared.active |= {o.spec.name for o in self.tracks if o.has_pose and isinstance(o.kf, PartFilter)
+                                    and o.kf.shared is tr.kf.shared}
+        else:
+            tr.kf = tr.new_filter()
+            tr.kf.init(R, t, time_s - 1e-6, self._est_cov)
         tr.status, tr.confidence = Status.KEYFRAME, 1.0
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
@@ -580,27 +593,31 @@ class Tracker:
             results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                        self.estimator.model.parts, self._kinematic, self.instruments)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-        # an instrument none of whose parts is tracked starts its state from all of them at once (the
-        # joints from their relative rotations), not from the first one's pose alone
-        starts: dict[int, tuple[InstrumentKalman, dict]] = {}
-        for (tr, _, _, _), res in zip(requests, results):
-            if (isinstance(tr.kf, PartFilter) and not tr.kf.shared.active and res.ok
-                    and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score):
-                starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}))[1][tr.spec.name] = (res.R, res.t)
-        for shared, poses in starts.values():
-            shared.init(poses, time_s, self._est_cov)
+        good_results = [res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+                        for res in results]
         # with the kinematic fit, the poses of one instrument's parts on a keyframe come from one joint fit:
         # one measurement of its state, not one per part, so each part's share of it is that much weaker
-        share = Counter(id(tr.kf.shared) for tr, _, _, _ in requests if isinstance(tr.kf, PartFilter))
+        share = Counter(id(tr.kf.shared) for (tr, _, _, _), res, good in zip(requests, results, good_results)
+                        if isinstance(tr.kf, PartFilter) and good and res.counts.get("kinematic"))
+
+        def est_cov_of(tr: _Track) -> np.ndarray:
+            k = share[id(tr.kf.shared)] if isinstance(tr.kf, PartFilter) else 0
+            return self._est_cov * k if k > 1 else self._est_cov
+
+        # an instrument none of whose parts is tracked starts its state from all of them at once (the
+        # joints from their relative rotations), not from the first one's pose alone
+        starts: dict[int, tuple[InstrumentKalman, dict, np.ndarray]] = {}
+        for (tr, _, _, _), res, good in zip(requests, results, good_results):
+            if isinstance(tr.kf, PartFilter) and not tr.kf.shared.active and good:
+                starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}, est_cov_of(tr)))[1][tr.spec.name] = (res.R, res.t)
+        for shared, poses, cov in starts.values():
+            shared.init(poses, time_s, cov)
         unseen: list[tuple[_Track, str]] = []
-        for (tr, box, prior, why), res in zip(requests, results):
-            est_cov = self._est_cov
-            if self._kinematic is not None and isinstance(tr.kf, PartFilter) and share[id(tr.kf.shared)] > 1:
-                est_cov = self._est_cov * share[id(tr.kf.shared)]
+        for (tr, box, prior, why), res, good in zip(requests, results, good_results):
+            est_cov = est_cov_of(tr)
             tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                            prior_won=bool(res.counts.get("prior_won", 0)),
                            kinematic=bool(res.counts.get("kinematic", 0)))
-            good = res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
             conf = float(1.0 - np.exp(-max(res.score, 0.0)))
             if good:
                 tr.unseen = tr.occluded = 0
