@@ -102,7 +102,7 @@ class InstrumentKalman:
             self._model_cache = (key, m, m.poses(np.zeros(m.size)), m.derivatives(np.zeros(m.size)))
         return self._model_cache[1:]
 
-    def _expand(self, D: np.ndarray, model: ArticulatedModel) -> np.ndarray:
+    def expand(self, D: np.ndarray, model: ArticulatedModel) -> np.ndarray:
         """A (k, 6 + m) derivative in ``model``'s parameters as (k, dim) in the state's error coordinates."""
         H = np.zeros((D.shape[0], self.dim))
         H[:, 0:3], H[:, 6:9] = D[:, 0:3], D[:, 3:6]
@@ -119,7 +119,7 @@ class InstrumentKalman:
     def part_jacobian(self, name: str) -> np.ndarray:
         """(6, dim): d(``name``'s pose step: position mm camera frame, body rotation rad) / d(state error)."""
         m, _, D = self._kinematics()
-        return self._expand(D[name], m)
+        return self.expand(D[name], m)
 
     # ------------------------------------------------------------------ init / predict
     def init(self, poses: Mapping[str, tuple[np.ndarray, np.ndarray]], time: float, meas_cov: np.ndarray) -> None:
@@ -242,7 +242,7 @@ class InstrumentKalman:
         ``basis @ params = basis @ step`` with covariance ``cov`` (m x m), e.g. a region fit's."""
         if len(basis) == 0:
             return False, math.nan
-        H = self._expand(basis, model)
+        H = self.expand(basis, model)
         return self._fuse(basis @ step, H, np.asarray(cov, np.float64), gate, len(basis))
 
     def widen(self, pose_cov: np.ndarray, joint_var: float) -> None:
@@ -277,7 +277,7 @@ class InstrumentKalman:
         its velocity and angular velocity, their covariance, to first order; no prior)."""
         m, poses, D = self._kinematics(step.R, step.x)
         R, t = poses[name]
-        J = self._expand(D[name], m)  # (6, dim) pose step / state error
+        J = self.expand(D[name], m)  # (6, dim) pose step / state error
         M = np.zeros((12, self.dim))  # the part's 12-state error as a linear map of the instrument's
         M[0:3], M[6:9] = J[0:3], J[3:6]
         rate_cols = np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
@@ -339,7 +339,7 @@ def read_joints(kf: InstrumentKalman, step: FilterStep, parts: Sequence[str] | N
             moved_poses = m.poses(e)
             moved = {p: se3(*moved_poses[kf.names[p]]) for p in posed}
             J[:, i] = (inst.tool_tip(moved)[1] - tip[1]) / h
-        E = kf._expand(np.eye(m.size), m)
+        E = kf.expand(np.eye(m.size), m)
         tip_cov = J @ (E @ step.P @ E.T) @ J.T
     return JointReading(fit, rates, {n: math.sqrt(max(v, 0.0)) for n, v in var.items()}, tip, tip_cov)
 

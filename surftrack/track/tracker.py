@@ -131,9 +131,8 @@ def filter_steps(states: Sequence[PartState]) -> dict[str, FilterStep | None]:
     (its articulated state), one per free part."""
     out: dict[str, FilterStep | None] = {}
     for s in states:
-        if s.shared is not None:
-            if s.R is not None or s.shared[0] not in out:
-                out[s.shared[0]] = s.shared[2] if s.R is not None else None
+        if s.shared is not None:  # set on the parts with a pose only
+            out[s.shared[0]] = s.shared[2]
         else:
             out[s.spec.name] = s.filter_step
     return out
@@ -493,7 +492,7 @@ class Tracker:
         in the directions the lines pin; parts whose own outline agrees count as measured."""
         cfg, shared = self.cfg, self.shared[key]
         model = shared.model()
-        E = shared._expand(np.eye(model.size), model)  # model parameters -> state error coordinates
+        E = shared.expand(np.eye(model.size), model)  # model parameters -> state error coordinates
         results = self._region_tracker().measure(frame_rgb, contours, model, E @ shared.kf.P @ E.T)
         if not results or model.solution_cov is None:
             return
