@@ -25,10 +25,11 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from surftrack.geometry import se3, se3_inv
-from surftrack.geometry.transforms import skew, so3_exp, so3_log
+from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import Instrument, JointFit, JointState, base_from_root, joints_from_poses
 from surftrack.instruments.kinematics import JOINT_NAMES
-from surftrack.track.kalman import CHI2_6DOF_999, FilterPrior, FilterStep, KalmanConfig, _block_q, _chi2_999
+from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, _block_q, gate_limit, inject_rotation,
+                                    pose_transition)
 from surftrack.track.region import ArticulatedModel
 
 _POSE = np.r_[0:3, 6:9]  # the root pose's error coordinates in the state (position mm, body rotation rad)
@@ -166,19 +167,11 @@ class InstrumentKalman:
         self.time, self.prior, self.active, self._model_cache = None, None, set(), None
 
     def _transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        x = self.kf.x.reshape(self.dim)
-        F = np.eye(self.dim)
-        F[0:3, 3:6] = np.eye(3) * dt
-        F[6:9, 6:9] = so3_exp(-x[9:12] * dt)
-        F[6:9, 9:12] = np.eye(3) * dt
+        """The root's pose transition (:func:`~.kalman.pose_transition`) and the joints' constant rates."""
+        F, Q = np.eye(self.dim), np.zeros((self.dim, self.dim))
+        F[:12, :12], Q[:12, :12] = pose_transition(self.kf.x.reshape(self.dim)[9:12], dt, self.config)
         F[12:12 + self.n, 12 + self.n:] = np.eye(self.n) * dt
-        c = self.config
-        Q = np.zeros((self.dim, self.dim))
-        Q[0:6, 0:6] = _block_q(dt, c.accel_std_mm_s2 ** 2)
-        Q[6:12, 6:12] = _block_q(dt, c.ang_accel_std_rad_s2 ** 2)
-        for k in range(self.n):
-            i = np.array([12 + k, 12 + self.n + k])
-            Q[np.ix_(i, i)] = np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0], [dt ** 2 / 2.0, dt]]) * self.joint_q
+        Q[12:, 12:] = _block_q(dt, self.joint_q, self.n)
         return F, Q
 
     def predict(self, time: float) -> None:
@@ -208,20 +201,12 @@ class InstrumentKalman:
         x = self.kf.x.reshape(self.dim)
         S = H @ self.kf.P @ H.T + cov
         d2 = float(y @ np.linalg.solve(S, y))
-        limit = self.config.gate_chi2 * _chi2_999(dof) / CHI2_6DOF_999
-        if not math.isfinite(d2) or (gate and d2 > limit):
+        if not math.isfinite(d2) or (gate and d2 > gate_limit(self.config, dof)):
             return False, d2
         self.kf.update((y + H @ x).reshape(-1, 1), R=cov, H=H)
-        x = self.kf.x.reshape(self.dim).copy()
-        dtheta = x[6:9].copy()
-        self.R_ref = self.R_ref @ so3_exp(dtheta)
-        x[6:9] = 0.0
+        self.R_ref, x, self.kf.P = inject_rotation(self.R_ref, self.kf.x.reshape(self.dim), self.kf.P)
         x[12:12 + self.n] = np.clip(x[12:12 + self.n], self.lo, self.hi)
         self.kf.x = x.reshape(-1, 1)
-        G = np.eye(self.dim)
-        G[6:9, 6:9] = np.eye(3) - 0.5 * skew(dtheta)
-        P = G @ self.kf.P @ G.T
-        self.kf.P = 0.5 * (P + P.T)
         self._model_cache = None
         return True, d2
 

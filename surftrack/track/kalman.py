@@ -108,10 +108,41 @@ def _chi2_999(dof: int) -> float:
     return float(chi2.ppf(0.999, dof))
 
 
-def _block_q(dt: float, q: float) -> np.ndarray:
-    """6x6 white-noise-acceleration covariance for a (position, velocity) triple of axes."""
-    i3 = np.eye(3)
-    return q * np.block([[dt**3 / 3.0 * i3, dt**2 / 2.0 * i3], [dt**2 / 2.0 * i3, dt * i3]])
+def _block_q(dt: float, q: float, axes: int = 3) -> np.ndarray:
+    """(2 axes, 2 axes) white-noise-acceleration covariance of ``axes`` positions followed by their rates."""
+    i = np.eye(axes)
+    return q * np.block([[dt**3 / 3.0 * i, dt**2 / 2.0 * i], [dt**2 / 2.0 * i, dt * i]])
+
+
+def gate_limit(config: KalmanConfig, dof: int) -> float:
+    """The gate for a measurement of ``dof`` dimensions: ``gate_chi2`` (6 dof) scaled by chi2(dof) /
+    chi2(6), both at 99.9 %."""
+    return config.gate_chi2 * _chi2_999(dof) / CHI2_6DOF_999
+
+
+def pose_transition(omega: np.ndarray, dt: float, config: KalmanConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(F, Q), 12x12: the error-state transition and process noise of a pose ``[t, v, dtheta, omega]``
+    over ``dt`` s with body angular velocity ``omega`` (see the module docstring)."""
+    F = np.eye(12)
+    F[0:3, 3:6] = np.eye(3) * dt
+    F[6:9, 6:9] = so3_exp(-omega * dt)
+    F[6:9, 9:12] = np.eye(3) * dt
+    Q = np.zeros((12, 12))
+    Q[0:6, 0:6] = _block_q(dt, config.accel_std_mm_s2**2)
+    Q[6:12, 6:12] = _block_q(dt, config.ang_accel_std_rad_s2**2)
+    return F, Q
+
+
+def inject_rotation(R_ref: np.ndarray, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R_ref, x, P) after moving the rotation error ``x[6:9]`` into the nominal ``R_ref`` and resetting
+    it to 0, the covariance through the first-order reset Jacobian on the rotation block."""
+    x = x.copy()
+    dtheta = x[6:9].copy()
+    x[6:9] = 0.0
+    G = np.eye(len(x))
+    G[6:9, 6:9] = np.eye(3) - 0.5 * skew(dtheta)
+    P = G @ P @ G.T
+    return R_ref @ so3_exp(dtheta), x, 0.5 * (P + P.T)
 
 
 @dataclass(frozen=True)
@@ -256,16 +287,7 @@ class PoseKalman:
         return FilterStep(self.time, self.R_ref.copy(), self.kf.x.reshape(12).copy(), self.kf.P.copy(), self.prior)
 
     def _transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        omega = self.kf.x.reshape(12)[9:12]
-        F = np.eye(12)
-        F[0:3, 3:6] = np.eye(3) * dt
-        F[6:9, 6:9] = so3_exp(-omega * dt)
-        F[6:9, 9:12] = np.eye(3) * dt
-        c = self.config
-        Q = np.zeros((12, 12))
-        Q[0:6, 0:6] = _block_q(dt, c.accel_std_mm_s2**2)
-        Q[6:12, 6:12] = _block_q(dt, c.ang_accel_std_rad_s2**2)
-        return F, Q
+        return pose_transition(self.kf.x.reshape(12)[9:12], dt, self.config)
 
     def _dt(self, time: float) -> float:
         self._require_init()
@@ -355,21 +377,13 @@ class PoseKalman:
         z, y, S, H = self._innovation(R_meas, t_meas, meas_cov, basis)
         d2 = float(y @ np.linalg.solve(S, y))
         self.last_d2 = d2
-        limit = self.config.gate_chi2 if basis is None else self.config.gate_chi2 * _chi2_999(len(z)) / CHI2_6DOF_999
+        limit = self.config.gate_chi2 if basis is None else gate_limit(self.config, len(z))
         if not math.isfinite(d2) or (gate and d2 > limit):
             self.rejections_in_a_row += 1
             return False
         self.kf.update(z.reshape(-1, 1), R=meas_cov, H=H)
-        # inject the rotation error into the nominal and reset it (with the covariance reset Jacobian)
-        x = self.kf.x.reshape(12).copy()
-        dtheta = x[6:9].copy()
-        self.R_ref = self.R_ref @ so3_exp(dtheta)
-        x[6:9] = 0.0
+        self.R_ref, x, self.kf.P = inject_rotation(self.R_ref, self.kf.x.reshape(12), self.kf.P)
         self.kf.x = x.reshape(12, 1)
-        G = np.eye(12)
-        G[6:9, 6:9] = np.eye(3) - 0.5 * skew(dtheta)
-        P = G @ self.kf.P @ G.T
-        self.kf.P = 0.5 * (P + P.T)
         self.rejections_in_a_row = 0
         return True
 
