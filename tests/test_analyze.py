@@ -136,3 +136,20 @@ def test_tool_tip_motion_skips_frames_without_a_fit(tmp_path):
     assert tip["path_length_mm"] == pytest.approx(50.0 * (N - 1 - 3) / FPS)  # 20 steps less the 3 across the gap
     assert tip["max_speed_mm_s"] == pytest.approx(50.0)
     assert "tip_path_mm" in format_analysis(analyze_mcap(path))
+    assert tip["path_length_sd_bound_mm"] is None and tip["position_std_mm"] is None
+
+
+def test_tool_tip_uncertainty_bounds_its_path(tmp_path):
+    """The tip's logged speed sd, integrated over the counted steps, bounds its path's sd."""
+    path = tmp_path / "tip_std.mcap"
+    with TrackWriter(path) as w:
+        for i in range(N):
+            t = i / FPS
+            w.joint_states(t, "lnd.0", ["roll"], [0.0])
+            w.tool_tip(t, "lnd.0", np.eye(3), np.array([0.0, 0.0, 60.0 + 10.0 * t]))
+            w.tool_tip_std(t, "lnd.0", np.diag([1.0, 4.0, 4.0]), [0.0, 0.0, 10.0], 2.0)
+    tip = analyze_mcap(path)["instruments"]["lnd.0"]["tool_tip"]
+    assert tip["path_length_mm"] == pytest.approx(10.0 * (N - 1) / FPS)
+    assert tip["path_length_sd_bound_mm"] == pytest.approx(2.0 * (N - 1) / FPS)
+    assert tip["position_std_mm"] == pytest.approx(3.0)
+    assert "tip_path_sd<=" in format_analysis(analyze_mcap(path))

@@ -225,6 +225,31 @@ def test_joints_read_off_the_state_match_the_truth_and_the_fit():
     assert reading.tip_cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(reading.tip_cov) > 0)
 
 
+def test_tool_tip_velocity_is_the_states_motion_through_the_kinematics():
+    """The tip's velocity read off the state equals the tip's displacement when the state moves on at its
+    own rates for a short time (shaft translating and turning, joints moving), and its covariance is a
+    covariance (symmetric, positive definite)."""
+    truth = _truth(40)
+    kf, _, _ = _run(truth, np.random.default_rng(3), 0.0, 0.0)
+    step = kf.snapshot()
+    x = step.x.copy()
+    x[3:6], x[9:12] = [20.0, -10.0, 5.0], [0.3, -0.2, 0.5]
+    x[12 + kf.n:] = 0.4
+    step = type(step)(step.time, step.R, x, step.P, None)
+    dt = 1e-6
+    xl = x.copy()
+    xl[0:3] += x[3:6] * dt
+    xl[12:12 + kf.n] += x[12 + kf.n:] * dt
+    later = type(step)(step.time, step.R @ so3_exp(x[9:12] * dt), xl, step.P, None)
+    now = read_joints(kf, step)
+    moved = (read_joints(kf, later).tip[1] - now.tip[1]) / dt
+    assert np.linalg.norm(moved) > 10.0
+    assert np.allclose(now.tip_velocity, moved, atol=1e-2 * np.linalg.norm(moved))
+    C = now.tip_velocity_cov
+    assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0)
+    assert 0.0 < now.tip_speed_std <= math.sqrt(np.linalg.eigvalsh(C).max()) + 1e-9
+
+
 def test_a_part_joining_far_off_is_a_jump_not_a_spin():
     """A part seen again 100 deg from where its instrument's state has it joins (never gated out), as
     a jump of the pose: the rates stay what they were, so the instrument does not start to spin."""

@@ -335,9 +335,11 @@ def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys, articulated)
     opening_std, rms = first[header.index("opening_std_deg")], first[header.index("rms_mm")]
     if articulated:  # read off the state: standard deviations, nothing fitted
         assert "/instruments/large_needle_driver.0/joints_std" in topics
+        assert "/instruments/large_needle_driver.0/tool_tip_std" in topics
         assert float(opening_std) > 0 and rms == ""
     else:
         assert "/instruments/large_needle_driver.0/joints_std" not in topics
+        assert "/instruments/large_needle_driver.0/tool_tip_std" not in topics
         assert opening_std == "" and float(rms) >= 0
     # `surftrack analyze` reads it back
     rc = main(["analyze", str(out), "--png", str(tmp_path / "a.png")])

@@ -10,7 +10,9 @@
   measured ones only),
 * ``/instruments/<name>/joints`` (``foxglove.JointStates``, radians; reported in degrees),
 * ``/instruments/<name>/tool_tip`` (``foxglove.PoseInFrame``): the fitted tool tip, whose motion is
-  reported as a part's is (a step longer than 1.5x the median breaks the chain: no fit in between).
+  reported as a part's is (a step longer than 1.5x the median breaks the chain: no fit in between), with
+  its uncertainty from ``/instruments/<name>/tool_tip_std`` (``surftrack.PointUncertainty``) where the
+  tip was read off an instrument's tracked state.
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
 and status times, so a logged "lost" frame, or a pose with a non-tracking status, breaks the chain and
@@ -53,6 +55,7 @@ _STATUS = re.compile(r"^/parts/([^/]+)/status$")
 _JOINTS = re.compile(r"^/instruments/([^/]+)/joints$")
 _JOINTS_STD = re.compile(r"^/instruments/([^/]+)/joints_std$")
 _TIP = re.compile(r"^/instruments/([^/]+)/tool_tip$")
+_TIP_STD = re.compile(r"^/instruments/([^/]+)/tool_tip_std$")
 
 
 def _read(path: Path) -> list[tuple[str, str, int, dict]]:
@@ -144,8 +147,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                                      "speed_time_s", "speed_mm_s"}}},
          "instruments": {name: {"frames", "t_start_s", "t_end_s", "joint_names",
                                 "opening_deg": {"min", "mean", "max", "mean_sd"} or None,
-                                "tool_tip": {"frames", "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s",
-                                             "rms_jerk_mm_s3"} or None,
+                                "tool_tip": {"frames", "path_length_mm", "path_length_sd_bound_mm",
+                                             "mean_speed_mm_s", "max_speed_mm_s", "rms_jerk_mm_s3",
+                                             "position_std_mm"} or None,
                                 "series": {"time_s", "<joint>_deg": [...]}}}}
 
     Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
@@ -161,6 +165,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     joints: dict[str, list[tuple[int, dict[str, float]]]] = {}
     joints_std: dict[str, list[dict[str, float]]] = {}
     tips: dict[str, dict[int, np.ndarray]] = {}
+    tip_std: dict[str, dict[int, tuple[float, float]]] = {}  # (position sd mm, speed sd mm/s) by frame
     messages = _read(path)
     try:
         for topic, schema, ns, msg in messages:
@@ -178,6 +183,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             elif (m := _TIP.match(topic)) and schema == "foxglove.PoseInFrame":
                 p = msg["pose"]["position"]
                 tips.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
+            elif (m := _TIP_STD.match(topic)) and schema == "surftrack.PointUncertainty":
+                tip_std.setdefault(m.group(1), {})[ns] = (float(np.linalg.norm(msg["position_std_mm"])),
+                                                          float(msg["speed_std_mm_s"]))
             elif (m := _JOINTS.match(topic)) and schema == "foxglove.JointStates":
                 vals = {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j}
                 joints.setdefault(m.group(1), []).append((ns, vals))
@@ -226,12 +234,14 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             series[f"{j}_deg"] = [math.degrees(vals[j]) if j in vals else math.nan for _, vals in msgs]
         opening = [v for v in series.get("opening_deg", []) if math.isfinite(v)]
         opening_sd = [math.degrees(sd["opening"]) for sd in joints_std.get(name, []) if "opening" in sd]
-        tip = tips.get(name, {})
-        tip_motion = _motion(*_with_gaps(tip)) if tip else None
+        tip, tsd = tips.get(name, {}), tip_std.get(name, {})
+        tip_motion = _motion(*_with_gaps(tip), {ns: v[1] for ns, v in tsd.items()} if tsd else None) if tip else None
         instruments[name] = {
             "tool_tip": None if tip_motion is None else {
-                "frames": len(tip), **{k: tip_motion[k] for k in ("path_length_mm", "mean_speed_mm_s",
-                                                                   "max_speed_mm_s", "rms_jerk_mm_s3")}},
+                "frames": len(tip), **{k: tip_motion[k] for k in ("path_length_mm", "path_length_sd_bound_mm",
+                                                                   "mean_speed_mm_s", "max_speed_mm_s",
+                                                                   "rms_jerk_mm_s3")},
+                "position_std_mm": float(np.mean([v[0] for v in tsd.values()])) if tsd else None},
             "frames": len(msgs),
             "t_start_s": msgs[0][0] * 1e-9,
             "t_end_s": msgs[-1][0] * 1e-9,
@@ -271,14 +281,15 @@ def format_analysis(summary: dict) -> str:
         w = max(10, *(len(n) for n in insts))
         lines.append("")
         lines.append(f"{'instrument':<{w}}  {'frames':>6}  {'start_s':>8}  {'end_s':>8}  "
-                     f"{'opening_deg min / mean / max':>28}  {'sd_deg':>8}  {'tip_path_mm':>11}  {'tip_mean_mm/s':>13}  "
-                     f"{'tip_max_mm/s':>12}  {'tip_jerk_mm/s3':>14}")
+                     f"{'opening_deg min / mean / max':>28}  {'sd_deg':>8}  {'tip_path_mm':>11}  {'tip_path_sd<=':>13}  "
+                     f"{'tip_mean_mm/s':>13}  {'tip_max_mm/s':>12}  {'tip_jerk_mm/s3':>14}")
         for n, i in insts.items():
             o, tip = i["opening_deg"], i.get("tool_tip") or {}
             ostr = "-" if o is None else f"{o['min']:.1f} / {o['mean']:.1f} / {o['max']:.1f}"
             osd = _num(None if o is None else o.get("mean_sd"), "8.1f")
             lines.append(f"{n:<{w}}  {i['frames']:>6}  {i['t_start_s']:>8.3f}  {i['t_end_s']:>8.3f}  {ostr:>28}  {osd:>8}  "
-                         f"{_num(tip.get('path_length_mm'), '11.1f'):>11}  {_num(tip.get('mean_speed_mm_s'), '13.1f'):>13}  "
+                         f"{_num(tip.get('path_length_mm'), '11.1f'):>11}  {_num(tip.get('path_length_sd_bound_mm'), '13.1f'):>13}  "
+                         f"{_num(tip.get('mean_speed_mm_s'), '13.1f'):>13}  "
                          f"{_num(tip.get('max_speed_mm_s'), '12.1f'):>12}  {_num(tip.get('rms_jerk_mm_s3'), '14.0f'):>14}")
     return "\n".join(lines)
 

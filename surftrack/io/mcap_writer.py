@@ -4,7 +4,8 @@ Every message is JSON (channel ``message_encoding="json"``) with a JSON Schema (
 "jsonschema"``) whose name is Foxglove's well-known name (``foxglove.PoseInFrame``,
 ``foxglove.FrameTransforms``, ``foxglove.CameraCalibration``, ``foxglove.CompressedImage``,
 ``foxglove.ImageAnnotations``, ``foxglove.SceneUpdate``, ``foxglove.JointStates``), so Foxglove
-recognises them by name; the part status uses a small schema of our own, ``surftrack.PartStatus``. The
+recognises them by name; the part status and the tool tip's uncertainty use small schemas of our own,
+``surftrack.PartStatus`` and ``surftrack.PointUncertainty``. The
 schemas are written here, following Foxglove's documented field names.
 
 Units and conventions:
@@ -26,7 +27,9 @@ per frame holding every part, parent ``camera`` -> child ``<name>``), ``/parts/<
 part is lost),
 ``/instruments/<instrument>/joints`` (JointStates: the joint variables, radians, with their rates where
 known), ``/instruments/<instrument>/joints_std`` (their standard deviations, radians, where known),
-``/instruments/<instrument>/tool_tip``.
+``/instruments/<instrument>/tool_tip`` and, where the tip comes from an instrument's tracked state,
+``/instruments/<instrument>/tool_tip_std`` (``surftrack.PointUncertainty``, in millimetres: its
+position covariance, velocity and speed standard deviation).
 
 The file is always finished (summary, index, statistics written) by ``close()`` or on leaving the
 ``with`` block, including when an exception interrupts the run, so what was written stays readable.
@@ -197,6 +200,13 @@ SCHEMAS: dict[str, dict] = {
     "surftrack.PartStatus": _obj("surftrack.PartStatus", "Tracking status of one part", {
         "timestamp": _TIME, "part": {"type": "string"}, "status": {"type": "string"},
         "confidence": {"type": "number"}, "extra": {"type": "object"}}),
+    "surftrack.PointUncertainty": _obj(
+        "surftrack.PointUncertainty", "Uncertainty of a tracked point (e.g. the tool tip), millimetres", {
+            "timestamp": _TIME, "frame_id": {"type": "string"},
+            "position_std_mm": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+            "position_covariance_mm2": {"type": "array", "items": {"type": "number"}, "minItems": 9, "maxItems": 9},
+            "velocity_mm_s": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+            "speed_std_mm_s": {"type": "number"}}),
 }
 
 _JOINT_FIELDS = ("velocity", "acceleration", "effort")
@@ -359,6 +369,21 @@ class TrackWriter:
         self._write(f"/instruments/{inst}/tool_tip", "foxglove.PoseInFrame", ns, {
             "timestamp": _stamp(ns), "frame_id": self.camera_frame,
             "pose": {"position": _t_metres(t_mm), "orientation": _quat(R)}})
+
+    def tool_tip_std(self, time_s: float, instrument_name: str, cov_mm2, velocity_mm_s, speed_std_mm_s: float) -> None:
+        """``surftrack.PointUncertainty`` on ``/instruments/<instrument_name>/tool_tip_std``: the tool tip's
+        position covariance ``cov_mm2`` (3x3, mm^2, camera frame; row-major, with the per-axis standard
+        deviations), its velocity (3,) mm/s and its speed's standard deviation (mm/s). Millimetres: our
+        own schema, read by ``surftrack analyze``."""
+        inst = _check_name(instrument_name)
+        ns = time_to_ns(time_s)
+        C = np.asarray(cov_mm2, np.float64).reshape(3, 3)
+        self._write(f"/instruments/{inst}/tool_tip_std", "surftrack.PointUncertainty", ns, {
+            "timestamp": _stamp(ns), "frame_id": self.camera_frame,
+            "position_std_mm": [_finite(math.sqrt(max(v, 0.0)), "position std") for v in np.diag(C)],
+            "position_covariance_mm2": [_finite(float(v), "position covariance") for v in C.ravel()],
+            "velocity_mm_s": [_finite(float(v), "velocity") for v in np.asarray(velocity_mm_s).ravel()],
+            "speed_std_mm_s": _finite(float(speed_std_mm_s), "speed std")})
 
     def transforms(self, time_s: float, poses: Mapping[str, tuple]) -> None:
         """One FrameTransforms message on ``/tf`` holding ``camera -> <name>`` for every part in

@@ -18,6 +18,7 @@ import numpy as np
 from surftrack.instruments import JOINT_NAMES
 from surftrack.track import PartSpec, PartState, Status
 from surftrack.track.instrument import read_joints
+from surftrack.track.kalman import speed_std
 
 
 class FrameSink(Protocol):
@@ -43,11 +44,9 @@ def uncertainty(s: PartState) -> dict:
     sd = np.sqrt(np.clip(np.diag(s.filter_step.P), 0.0, None))
     x = s.filter_step.x
     v = x[3:6]
-    u = v / max(float(np.linalg.norm(v)), 1e-9)
     return {"position_std_mm": sd[0:3].round(3).tolist(), "rotation_std_deg": np.degrees(sd[6:9]).round(3).tolist(),
             "velocity_mm_s": v.round(3).tolist(), "angular_velocity_deg_s": np.degrees(x[9:12]).round(3).tolist(),
-            # the speed's standard deviation, along the velocity (what a path length integrates)
-            "speed_std_mm_s": round(float(np.sqrt(max(u @ s.filter_step.P[3:6, 3:6] @ u, 0.0))), 3)}
+            "speed_std_mm_s": round(speed_std(v, s.filter_step.P[3:6, 3:6]), 3)}
 
 
 def image_annotations(K: np.ndarray, states: list[PartState]) -> dict:
@@ -131,7 +130,7 @@ class TumSink:
 class JointsSink:
     """Each instrument's joint angles, as foxglove.JointStates in the MCAP (with their rates as
     ``velocity``, rad/s, where known, and the tool tip, :meth:`~surftrack.instruments.Instrument.tool_tip`,
-    on ``.../tool_tip``) and, with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`.
+    on ``.../tool_tip``, with its uncertainty on ``.../tool_tip_std`` when read off the state) and, with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`.
     An instrument tracked as one articulated state (:mod:`surftrack.track.instrument`) has its joints
     read off that (smoothed) state; otherwise ``fitters`` ((instrument, instance) ->
     :class:`~surftrack.track.articulation.ArticulationTracker`) fit them to the parts' poses.
@@ -148,6 +147,7 @@ class JointsSink:
             shared = next((s.shared for s in mine if s.shared is not None), None)
             rates: dict[str, float] = {}
             std: dict[str, float] | None = None
+            reading = None
             if shared is not None:
                 reading = read_joints(shared[1], shared[2], [s.spec.name for s in mine if s.R is not None])
                 fit, tip, rates, std = reading.fit, reading.tip, reading.rates, reading.std
@@ -164,5 +164,8 @@ class JointsSink:
                 self.writer.joint_states(time_s, label, JOINT_NAMES, [std.get(n) for n in JOINT_NAMES], kind="joints_std")
             if tip is not None:
                 self.writer.tool_tip(time_s, label, *tip)
+                if reading is not None and reading.tip_cov is not None:
+                    self.writer.tool_tip_std(time_s, label, reading.tip_cov, reading.tip_velocity,
+                                             reading.tip_speed_std)
             if self.csv is not None:
                 self.csv.add(time_s, label, fit, std)

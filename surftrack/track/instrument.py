@@ -29,7 +29,7 @@ from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import Instrument, JointFit, JointState, base_from_root, joints_from_poses
 from surftrack.instruments.kinematics import JOINT_NAMES
 from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, _block_q, gate_limit, inject_rotation,
-                                    pose_transition)
+                                    pose_transition, speed_std)
 from surftrack.track.region import ArticulatedModel
 
 _POSE = np.r_[0:3, 6:9]  # the root pose's error coordinates in the state (position mm, body rotation rad)
@@ -74,6 +74,16 @@ class InstrumentKalman:
     @property
     def q_index(self) -> np.ndarray:
         return np.arange(12, 12 + self.n)
+
+    @property
+    def pose_cols(self) -> np.ndarray:
+        """The state's pose and joint error coordinates (position, rotation, joints) ..."""
+        return np.r_[_POSE, np.arange(12, 12 + self.n)]
+
+    @property
+    def rate_cols(self) -> np.ndarray:
+        """... and their rates, in the same order (velocity, angular velocity, joint rates)."""
+        return np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
 
     @property
     def x(self) -> np.ndarray:
@@ -236,8 +246,7 @@ class InstrumentKalman:
         measurement the state disbelieves (:meth:`PoseKalman.restart`). Applied to the current state, so
         the other parts' updates of this frame stay; the frame's prediction gets the same widening (as
         extra process noise for the smoother)."""
-        pose = np.r_[_POSE, np.arange(12, 12 + self.n)]
-        rates = np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
+        pose, rates = self.pose_cols, self.rate_cols
 
         def widened(P: np.ndarray) -> np.ndarray:
             P = P.copy()
@@ -265,9 +274,7 @@ class InstrumentKalman:
         J = self.expand(D[name], m)  # (6, dim) pose step / state error
         M = np.zeros((12, self.dim))  # the part's 12-state error as a linear map of the instrument's
         M[0:3], M[6:9] = J[0:3], J[3:6]
-        rate_cols = np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
-        pose_cols = np.r_[0:3, 6:9, np.arange(12, 12 + self.n)]
-        M[3:6, rate_cols], M[9:12, rate_cols] = J[0:3, pose_cols], J[3:6, pose_cols]
+        M[3:6, self.rate_cols], M[9:12, self.rate_cols] = J[0:3, self.pose_cols], J[3:6, self.pose_cols]
         x = np.zeros(12)
         x[0:3] = t
         x[3:6], x[9:12] = M[3:6] @ step.x, M[9:12] @ step.x
@@ -279,13 +286,23 @@ class InstrumentKalman:
 class JointReading:
     """An instrument's joints read off its (smoothed) state: ``fit`` (base pose, all joints with the roll,
     as the per-frame fit reports them), per joint name its rate (rad/s) and standard deviation (rad), and
-    the tool tip (R, t mm) with its position's 3x3 covariance (mm^2), None without a tip."""
+    the tool tip (R, t mm) with its position's 3x3 covariance (mm^2), its velocity (3,) mm/s in the camera
+    frame and that velocity's 3x3 covariance ((mm/s)^2), each None without a tip."""
 
     fit: JointFit
     rates: dict[str, float]
     std: dict[str, float]
     tip: tuple[np.ndarray, np.ndarray] | None
     tip_cov: np.ndarray | None
+    tip_velocity: np.ndarray | None = None
+    tip_velocity_cov: np.ndarray | None = None
+
+    @property
+    def tip_speed_std(self) -> float | None:
+        """The tip speed's standard deviation (mm/s) along its velocity (what a path length integrates)."""
+        if self.tip_velocity_cov is None:
+            return None
+        return speed_std(self.tip_velocity, self.tip_velocity_cov)
 
 
 def read_joints(kf: InstrumentKalman, step: FilterStep, parts: Sequence[str] | None = None) -> JointReading:
@@ -314,7 +331,7 @@ def read_joints(kf: InstrumentKalman, step: FilterStep, parts: Sequence[str] | N
     fit = JointFit(base[:3, :3], base[:3, 3], joints, {n: n in var for n in JOINT_NAMES},
                    tuple(n for n in JOINT_NAMES if n not in var), {}, tuple(posed), None, True)
     tip = inst.tool_tip(posed)
-    tip_cov = None
+    tip_cov = tip_vel = tip_vel_cov = None
     if tip is not None:
         # the tip's position through the kinematics, differentiated numerically in the state's pose and joints
         h, J = 1e-5, np.zeros((3, m.size))
@@ -324,9 +341,14 @@ def read_joints(kf: InstrumentKalman, step: FilterStep, parts: Sequence[str] | N
             moved_poses = m.poses(e)
             moved = {p: se3(*moved_poses[kf.names[p]]) for p in posed}
             J[:, i] = (inst.tool_tip(moved)[1] - tip[1]) / h
-        E = kf.expand(np.eye(m.size), m)
-        tip_cov = J @ (E @ step.P @ E.T) @ J.T
-    return JointReading(fit, rates, {n: math.sqrt(max(v, 0.0)) for n, v in var.items()}, tip, tip_cov)
+        Js = J @ kf.expand(np.eye(m.size), m)  # (3, dim) in the state's error coordinates
+        tip_cov = Js @ step.P @ Js.T
+        # the tip moves as the state's rates move its pose and joints (first order, as part_step)
+        Jr = Js[:, kf.pose_cols]
+        tip_vel = Jr @ step.x[kf.rate_cols]
+        tip_vel_cov = Jr @ step.P[np.ix_(kf.rate_cols, kf.rate_cols)] @ Jr.T
+    return JointReading(fit, rates, {n: math.sqrt(max(v, 0.0)) for n, v in var.items()}, tip, tip_cov,
+                        tip_vel, tip_vel_cov)
 
 
 class PartFilter:

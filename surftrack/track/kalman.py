@@ -120,6 +120,15 @@ def gate_limit(config: KalmanConfig, dof: int) -> float:
     return config.gate_chi2 * _chi2_999(dof) / CHI2_6DOF_999
 
 
+def speed_std(velocity: np.ndarray, cov: np.ndarray) -> float:
+    """The standard deviation (mm/s) of the speed of a point moving at ``velocity`` (3,) mm/s with that
+    velocity's covariance ``cov`` (3, 3): along the velocity, what a path length integrates (any axis
+    serves at rest)."""
+    v = np.asarray(velocity, np.float64)
+    u = v / max(float(np.linalg.norm(v)), 1e-9)
+    return float(np.sqrt(max(float(u @ cov @ u), 0.0)))
+
+
 def pose_transition(omega: np.ndarray, dt: float, config: KalmanConfig) -> tuple[np.ndarray, np.ndarray]:
     """(F, Q), 12x12: the error-state transition and process noise of a pose ``[t, v, dtheta, omega]``
     over ``dt`` s with body angular velocity ``omega`` (see the module docstring)."""
