@@ -72,6 +72,14 @@ class TrackConfig:
     poses come from one joint fit: each is fused with the estimator's covariance times the number of
     them (one measurement of the state, not one per part).
 
+    ``trocar`` (with ``articulated``): the shaft axes of the estimator's shaft poses locate the
+    instrument's trocar (:mod:`surftrack.track.trocar`; after ``trocar_after`` of them, while the camera
+    holds still) and each frame's state is held to pass its shaft through it, within ``trocar_floor_mm``
+    (the trocar's play) on top of the point's own uncertainty. Off: on the development clips 3 and 12
+    the tools pivot a few degrees and the estimator's axes scatter as much, so the point is pinned
+    across the shaft but not along it, and holding the state to it cost 5-10 points of ADD-10 on the
+    wrist and jaws; even the clips' true trocar gained nothing clear (docs/decisions.md).
+
     ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
@@ -106,6 +114,9 @@ class TrackConfig:
     region_max_std_deg: float = 3.0
     articulated: bool = False
     joint_accel_std_rad_s2: float = 2.0
+    trocar: bool = False
+    trocar_after: int = 8
+    trocar_floor_mm: float = 2.0
     min_box_score: float = 0.3
     min_iou: float = 0.2
     max_predicted: int = 3
@@ -159,7 +170,7 @@ class TrackConfig:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
         if self.max_occluded < 0:
             raise ValueError(f"max_occluded must be >= 0, got {self.max_occluded}")
-        for name in ("max_points", "refresh_every", "max_predicted", "region_points"):
+        for name in ("max_points", "refresh_every", "max_predicted", "region_points", "trocar_after"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("kinematic_anchor_weight", "kinematic_anchor_translation_weight"):
@@ -172,7 +183,7 @@ class TrackConfig:
                      "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg"):
+        for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.keyframe_max_s) and self.keyframe_max_s >= 0):

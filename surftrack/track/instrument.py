@@ -31,6 +31,7 @@ from surftrack.instruments.kinematics import JOINT_NAMES
 from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, _block_q, gate_limit, inject_rotation,
                                     pose_transition, speed_std)
 from surftrack.track.region import ArticulatedModel
+from surftrack.track.trocar import Trocar
 
 _POSE = np.r_[0:3, 6:9]  # the root pose's error coordinates in the state (position mm, body rotation rad)
 
@@ -41,10 +42,13 @@ class InstrumentKalman:
     ``names``: the instrument's part -> the name its pose goes by (its root part among them); the joints
     of the state are those that move these parts relative to the root. ``joint_accel_std_rad_s2``: the
     joints' white-noise acceleration; ``init_joint_std_deg``: the spread of a joint no measured part has
-    pinned yet."""
+    pinned yet. ``trocar``: where given, the root's measured poses locate the instrument's trocar and,
+    once located, every prediction is followed by the constraint that the shaft axis passes through it
+    (:mod:`~.trocar`); it outlives the state (a scene's, not a track's)."""
 
     def __init__(self, instrument: Instrument, names: Mapping[str, str], config: KalmanConfig | None = None,
-                 joint_accel_std_rad_s2: float = 2.0, init_joint_std_deg: float = 30.0):
+                 joint_accel_std_rad_s2: float = 2.0, init_joint_std_deg: float = 30.0,
+                 trocar: Trocar | None = None):
         root = instrument.chain.order[0]
         if root not in names:
             raise ValueError(f"{instrument.name}: its root part {root!r} is not tracked; track its parts freely")
@@ -65,6 +69,12 @@ class InstrumentKalman:
         self.active: set[str] = set()  # names of the parts whose tracks are on this state
         self.q_ref = JointState()  # the last joints, a start for a re-initialisation
         self._model_cache: tuple | None = None
+        self.trocar = trocar
+        # the shaft axis in the root part's frame: the base's z axis through its origin (the pitch
+        # point); the roll turns the root about that axis, so the line is the same at every roll
+        F = instrument.forward(np.eye(4), JointState())[root]
+        self.axis_point = -F[:3, :3].T @ F[:3, 3]
+        self.axis_dir = F[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
     # ------------------------------------------------------------------ state
     @property
@@ -203,6 +213,30 @@ class InstrumentKalman:
         self.R_ref, self.time = R_next, float(time)
         self.prior = FilterPrior(F, R_next.copy(), xn.copy(), self.kf.P.copy())
         self._model_cache = None
+        self._constrain_to_trocar()
+
+    def root_axis(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The shaft axis (a point mm, a unit direction; camera frame) of the root part at pose (R, t)."""
+        return R @ self.axis_point + t, R @ self.axis_dir
+
+    def _constrain_to_trocar(self) -> None:
+        """Fuse "the shaft axis passes through the trocar" (2D, gated) once the trocar is located; a
+        refusal counts towards forgetting it."""
+        if self.trocar is None or self.trocar.point is None:
+            return
+        x = self.kf.x.reshape(self.dim)
+        R = self.R_ref @ so3_exp(x[6:9])
+        res = self.trocar.residual(*self.root_axis(R, x[0:3]), R, self.axis_point, self.axis_dir)
+        if res is None:
+            return
+        y, J, cov = res
+        H = np.zeros((2, self.dim))
+        H[:, 0:3], H[:, 6:9] = J[:, 0:3], J[:, 3:6]
+        ok, _ = self._fuse(y, H, cov, gate=True, dof=2)
+        if ok:
+            self.trocar.accept()
+        else:
+            self.trocar.refuse()
 
     # ------------------------------------------------------------------ measurements
     def _fuse(self, y: np.ndarray, H: np.ndarray, cov: np.ndarray, gate: bool, dof: int) -> tuple[bool, float]:
@@ -229,7 +263,10 @@ class InstrumentKalman:
         H = self.part_jacobian(name)
         if basis is not None:
             y, H = basis @ y, basis @ H
-        return self._fuse(y, H, np.asarray(meas_cov, np.float64), gate, len(y))
+        fused = self._fuse(y, H, np.asarray(meas_cov, np.float64), gate, len(y))
+        if fused[0] and basis is None and self.trocar is not None and name == self.names[self.root]:
+            self.trocar.add_axis(*self.root_axis(np.asarray(R, np.float64), np.asarray(t, np.float64)))
+        return fused
 
     def update_model(self, model: ArticulatedModel, step: np.ndarray, basis: np.ndarray, cov: np.ndarray,
                      gate: bool = True) -> tuple[bool, float]:

@@ -41,6 +41,7 @@ from surftrack.track.instrument import InstrumentKalman, PartFilter
 from surftrack.track.kalman import FilterStep, PoseKalman
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
 from surftrack.track.status import POSED, Status
+from surftrack.track.trocar import Trocar
 
 
 # estimator runs the tracker scheduled itself (not asked for by a failing measurement)
@@ -270,7 +271,11 @@ class Tracker:
             for key, inst in self._described.items():
                 names = {s.part: s.name for s in specs if f"{s.instrument}.{s.instance}" == key}
                 if inst is not None and inst.chain.order[0] in names:
-                    self.shared[key] = InstrumentKalman(inst, names, self.cfg.kalman, self.cfg.joint_accel_std_rad_s2)
+                    trocar = (Trocar(self.cfg.trocar_after, axis_std_mm=self.cfg.est_pos_std_mm,
+                                     axis_std_deg=self.cfg.est_rot_std_deg, floor_mm=self.cfg.trocar_floor_mm)
+                              if self.cfg.trocar else None)
+                    self.shared[key] = InstrumentKalman(inst, names, self.cfg.kalman, self.cfg.joint_accel_std_rad_s2,
+                                                        trocar=trocar)
         self.samples: dict[str, SurfaceSamples] = {}
         for s in specs:
             mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
