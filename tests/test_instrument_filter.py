@@ -248,6 +248,16 @@ def test_tool_tip_velocity_is_the_states_motion_through_the_kinematics():
     C = now.tip_velocity_cov
     assert np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0)
     assert 0.0 < now.tip_speed_std <= math.sqrt(np.linalg.eigvalsh(C).max()) + 1e-9
+    # the covariance is the spread of the tip's velocity over the state's rates drawn from theirs
+    rates = kf.rate_cols
+    draws = np.random.default_rng(0).multivariate_normal(np.zeros(len(rates)), step.P[np.ix_(rates, rates)], 300)
+    vel = []
+    for dv in draws:
+        xs = x.copy()
+        xs[rates] += dv
+        vel.append(read_joints(kf, type(step)(step.time, step.R, xs, step.P, None)).tip_velocity)
+    emp = np.cov(np.array(vel).T)
+    assert np.trace(emp) == pytest.approx(np.trace(C), rel=0.2)
 
 
 def test_a_part_joining_far_off_is_a_jump_not_a_spin():

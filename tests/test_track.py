@@ -655,8 +655,34 @@ def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(ln
     moved = PartState(spec, "predicted", 1.0, R, t + np.array([2.0, 0.0, 0.0]), None, {}).settled(kf.snapshot(), cfg)
     assert moved.confidence < confs[-1]
     assert confidence(np.zeros((3, 3)), 1.0, 0.0, spec.diameter, cfg) == 1.0
+    # a covariance far from round (depth the least certain): still the probability
+    C = np.diag([0.3, 0.3, 5.0])
+    e = np.random.default_rng(1).multivariate_normal(np.zeros(3), cfg.confidence_scale ** 2 * C, 200_000)
+    inside = np.mean(np.linalg.norm(e, axis=1) <= 0.1 * spec.diameter)
+    assert 0.2 < inside < 0.8 and confidence(C, 1.0, 0.0, spec.diameter, cfg) == pytest.approx(inside, abs=0.03)
     lost = PartState(spec, "lost", 0.0, None, None, None)
     assert lost.settled(None, cfg) is lost
+
+
+def test_running_nis_follows_the_measurements_and_starts_afresh(lnd_parts):
+    """A track's NIS: each measurement's d2 / dof with the configured weight, capped, NaN ignored, a
+    rejected one counted too; back to 1 when the track is dropped or a pose is set."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track.tracker import _Track
+
+    lnd = load_instrument("lnd")
+    mesh = lnd.parts["wrist"].mesh
+    spec = PartSpec(lnd_parts["wrist"], 2, "large_needle_driver", 0, "wrist", mesh.vertices, mesh.faces)
+    tr = _Track(spec, TrackConfig())
+    tr.note_d2(12.0, 6, 0.5)
+    assert tr.nis == pytest.approx(0.5 * 1.0 + 0.5 * 2.0) and tr.info["d2"] == 12.0
+    tr.note_d2(float("nan"), 6, 0.5)
+    tr.note_d2(None, 6, 0.5)
+    assert tr.nis == pytest.approx(1.5)
+    tr.note_d2(1e9, 2, 0.5, accepted=False)
+    assert tr.nis == pytest.approx(0.5 * 1.5 + 0.5 * 100.0) and tr.info["rejected_d2"] == 1e9
+    tr.drop()
+    assert tr.nis == 1.0
 
 
 def test_the_every_frame_config_is_the_default_without_the_region_measurement():

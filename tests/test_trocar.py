@@ -109,6 +109,7 @@ def _run(trocar: Trocar | None, shaft_poses, rng) -> tuple[InstrumentKalman, np.
         else:
             kf.predict(k / FPS)
             kf.update_part(NAMES["shaft"], *noisy, cov, gate=False)
+        kf.note_root_pose(*noisy)
         d = kf.root_axis(R, t)[1]
         e = kf.part_pose(NAMES["shaft"])[1] - t
         errs.append(np.linalg.norm(e - d * (d @ e)))

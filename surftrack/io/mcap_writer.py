@@ -206,7 +206,9 @@ SCHEMAS: dict[str, dict] = {
             "position_std_mm": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
             "position_covariance_mm2": {"type": "array", "items": {"type": "number"}, "minItems": 9, "maxItems": 9},
             "velocity_mm_s": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
-            "speed_std_mm_s": {"type": "number"}}),
+            "speed_std_mm_s": {"type": "number"}}) | {
+        "required": ["timestamp", "frame_id", "position_std_mm", "position_covariance_mm2", "velocity_mm_s",
+                     "speed_std_mm_s"]},
 }
 
 _JOINT_FIELDS = ("velocity", "acceleration", "effort")
@@ -377,12 +379,14 @@ class TrackWriter:
         own schema, read by ``surftrack analyze``."""
         inst = _check_name(instrument_name)
         ns = time_to_ns(time_s)
-        C = np.asarray(cov_mm2, np.float64).reshape(3, 3)
+        C, v = np.asarray(cov_mm2, np.float64), np.asarray(velocity_mm_s, np.float64)
+        if C.shape != (3, 3) or v.shape != (3,):
+            raise ValueError(f"tool_tip_std: a 3x3 covariance and a 3-vector velocity, got {C.shape} and {v.shape}")
         self._write(f"/instruments/{inst}/tool_tip_std", "surftrack.PointUncertainty", ns, {
             "timestamp": _stamp(ns), "frame_id": self.camera_frame,
-            "position_std_mm": [_finite(math.sqrt(max(v, 0.0)), "position std") for v in np.diag(C)],
-            "position_covariance_mm2": [_finite(float(v), "position covariance") for v in C.ravel()],
-            "velocity_mm_s": [_finite(float(v), "velocity") for v in np.asarray(velocity_mm_s).ravel()],
+            "position_std_mm": [_finite(math.sqrt(max(x, 0.0)), "position std") for x in np.diag(C)],
+            "position_covariance_mm2": [_finite(float(x), "position covariance") for x in C.ravel()],
+            "velocity_mm_s": [_finite(float(x), "velocity") for x in v],
             "speed_std_mm_s": _finite(float(speed_std_mm_s), "speed std")})
 
     def transforms(self, time_s: float, poses: Mapping[str, tuple]) -> None:

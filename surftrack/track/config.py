@@ -170,12 +170,16 @@ class TrackConfig:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
         if self.max_occluded < 0:
             raise ValueError(f"max_occluded must be >= 0, got {self.max_occluded}")
-        for name in ("max_points", "refresh_every", "max_predicted", "region_points", "trocar_after"):
+        for name in ("max_points", "refresh_every", "max_predicted", "region_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("kinematic_anchor_weight", "kinematic_anchor_translation_weight"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.trocar_after < 2:
+            raise ValueError(f"trocar_after must be >= 2 (axes to meet), got {self.trocar_after}")
+        if self.trocar and not self.articulated:
+            raise ValueError("trocar needs articulated: true (it constrains an instrument's state)")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_add",

@@ -42,9 +42,9 @@ class InstrumentKalman:
     ``names``: the instrument's part -> the name its pose goes by (its root part among them); the joints
     of the state are those that move these parts relative to the root. ``joint_accel_std_rad_s2``: the
     joints' white-noise acceleration; ``init_joint_std_deg``: the spread of a joint no measured part has
-    pinned yet. ``trocar``: where given, the root's measured poses locate the instrument's trocar and,
-    once located, every prediction is followed by the constraint that the shaft axis passes through it
-    (:mod:`~.trocar`); it outlives the state (a scene's, not a track's)."""
+    pinned yet. ``trocar``: where given, the root's independent poses (:meth:`note_root_pose`) locate the
+    instrument's trocar and, once located, every prediction is followed by the constraint that the shaft
+    axis passes through it (:mod:`~.trocar`); it outlives the state (a scene's, not a track's)."""
 
     def __init__(self, instrument: Instrument, names: Mapping[str, str], config: KalmanConfig | None = None,
                  joint_accel_std_rad_s2: float = 2.0, init_joint_std_deg: float = 30.0,
@@ -263,10 +263,13 @@ class InstrumentKalman:
         H = self.part_jacobian(name)
         if basis is not None:
             y, H = basis @ y, basis @ H
-        fused = self._fuse(y, H, np.asarray(meas_cov, np.float64), gate, len(y))
-        if fused[0] and basis is None and self.trocar is not None and name == self.names[self.root]:
+        return self._fuse(y, H, np.asarray(meas_cov, np.float64), gate, len(y))
+
+    def note_root_pose(self, R: np.ndarray, t: np.ndarray) -> None:
+        """An independent measurement of the root's pose (the estimator's, fused): its shaft axis helps
+        locate the trocar (flow's poses are not: their points were lifted with the state's own pose)."""
+        if self.trocar is not None:
             self.trocar.add_axis(*self.root_axis(np.asarray(R, np.float64), np.asarray(t, np.float64)))
-        return fused
 
     def update_model(self, model: ArticulatedModel, step: np.ndarray, basis: np.ndarray, cov: np.ndarray,
                      gate: bool = True) -> tuple[bool, float]:
@@ -476,10 +479,14 @@ class PartFilter:
         which is all it can tell apart from the rest of its instrument."""
         self._jump(R_meas, t_meas, meas_cov, widen)
 
+    @property
+    def is_root(self) -> bool:
+        """This part is its instrument's root (the shaft)."""
+        return self.name == self.shared.names[self.shared.root]
+
     def _jump(self, R: np.ndarray, t: np.ndarray, cov: np.ndarray, widen: np.ndarray | None = None) -> None:
-        root = self.name == self.shared.names[self.shared.root]
         widen = self._widen if widen is None else widen
-        self.shared.widen(widen if root else np.zeros((6, 6)), self._widen_joint)
+        self.shared.widen(widen if self.is_root else np.zeros((6, 6)), self._widen_joint)
         self.update(R, t, cov, gate=False)
 
     def snapshot(self) -> FilterStep:

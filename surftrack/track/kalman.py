@@ -122,10 +122,13 @@ def gate_limit(config: KalmanConfig, dof: int) -> float:
 
 def speed_std(velocity: np.ndarray, cov: np.ndarray) -> float:
     """The standard deviation (mm/s) of the speed of a point moving at ``velocity`` (3,) mm/s with that
-    velocity's covariance ``cov`` (3, 3): along the velocity, what a path length integrates (any axis
-    serves at rest)."""
+    velocity's covariance ``cov`` (3, 3): along the velocity, what a path length integrates (at rest,
+    along the widest axis)."""
     v = np.asarray(velocity, np.float64)
-    u = v / max(float(np.linalg.norm(v)), 1e-9)
+    n = float(np.linalg.norm(v))
+    if n < 1e-6:  # at rest the speed's spread is the velocity's, in its widest direction
+        return float(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+    u = v / n
     return float(np.sqrt(max(float(u @ cov @ u), 0.0)))
 
 

@@ -76,7 +76,8 @@ class PartState:
     """One part on one frame. ``R``, ``t`` (mm, model-to-camera) are None when there is no pose.
     ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: diagnostics (points, inliers,
     RMS px, Mahalanobis d2, estimator score, why the estimator ran, ``kinematic``: whether the estimate
-    was replaced by the instrument fit's pose). ``confidence`` as :meth:`Tracker.step` returns it is the
+    was replaced by the instrument fit's pose, ``nis``: the track's running normalised innovation).
+    ``confidence`` as :meth:`Tracker.step` returns it is the
     tracker's own working value (estimator score, decaying without a measurement); what a run writes is
     :meth:`settled`'s, from the covariance."""
 
@@ -138,20 +139,20 @@ def confidence(pos_cov: np.ndarray, nis: float, moved_mm: float, diameter_mm: fl
     times the part's diameter (the ADD-10 threshold by default), the error taken as zero-mean Gaussian
     with the filter's position covariance ``pos_cov`` (3x3, mm^2) scaled by the track's running
     normalised innovation ``nis`` (its measurements disagreeing with it more than their covariances
-    allow: covariance matching), plus ``moved_mm`` (how far smoothing moved the pose) squared,
-    inflated by ``cfg.confidence_scale``. On the three development clips it ranked ADD with a Spearman rho
-    of -0.57 against -0.39 for the covariance alone, and the covariance alone ranked clip 22's errors
-    backwards (+0.18: a state that had settled on a wrong configuration, tight and wrong)."""
-    var = max(float(np.trace(pos_cov)), 0.0) * max(nis, 0.0) + moved_mm ** 2
-    sd_axis = cfg.confidence_scale * math.sqrt(var / 3.0)
-    if sd_axis <= 0.0:
-        return 1.0
-    return float(_chi3_cdf(cfg.confidence_add * diameter_mm / sd_axis))
+    allow: covariance matching), plus ``moved_mm`` (how far smoothing moved the pose) squared spread over
+    the three axes, the standard deviations inflated by ``cfg.confidence_scale``. The probability is
+    counted over a fixed set of standard-normal samples (the covariance is not round: depth is the least
+    certain). On the three development clips it ranked ADD with a Spearman rho of -0.57 against -0.39
+    for the covariance alone, which ranked clip 22's errors backwards (+0.18: a state settled on a wrong
+    configuration, tight and wrong). The rotation's uncertainty is not in it."""
+    C = np.asarray(pos_cov, np.float64) * max(nis, 0.0) + np.eye(3) * (moved_mm ** 2 / 3.0)
+    var = np.clip(np.linalg.eigvalsh(0.5 * (C + C.T)), 0.0, None) * cfg.confidence_scale ** 2
+    r = cfg.confidence_add * diameter_mm
+    return float(np.mean((_UNIT_NORMAL ** 2) @ var <= r * r))
 
 
-def _chi3_cdf(x: float) -> float:
-    """P(|e| <= x) for e ~ N(0, I3): the chi distribution with 3 degrees of freedom."""
-    return math.erf(x / math.sqrt(2.0)) - math.sqrt(2.0 / math.pi) * x * math.exp(-0.5 * x * x)
+# fixed standard-normal samples in 3D for :func:`confidence` (repeatable; resolution 1/4096)
+_UNIT_NORMAL = np.random.default_rng(0).standard_normal((4096, 3))
 
 
 def filter_steps(states: Sequence[PartState]) -> dict[str, FilterStep | None]:
@@ -231,7 +232,7 @@ class _Track:
     def note_d2(self, d2: float | None, dof: int, weight: float, accepted: bool = True) -> None:
         """Record a measurement's squared Mahalanobis distance ``d2`` to the track (``dof`` its
         dimension; ``accepted`` False for one the gate kept out) in the info and in the running NIS."""
-        if d2 is None:
+        if d2 is None or math.isnan(d2):
             return
         self.info["d2" if accepted else "rejected_d2"] = d2
         # a gated-out estimate counts too (capped: one wild outlier should not zero the confidence)
@@ -376,7 +377,7 @@ class Tracker:
         else:
             tr.kf = tr.new_filter()
             tr.kf.init(R, t, time_s - 1e-6, self._est_cov)
-        tr.status, tr.confidence = Status.KEYFRAME, 1.0
+        tr.status, tr.confidence, tr.nis = Status.KEYFRAME, 1.0, 1.0
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
@@ -673,11 +674,13 @@ class Tracker:
                 elif tr.kf.update(res.R, res.t, est_cov):
                     tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight)
+                    if isinstance(tr.kf, PartFilter) and tr.kf.is_root:
+                        tr.kf.shared.note_root_pose(res.R, res.t)  # an independent shaft axis for the trocar
                 elif tr.kf.lost:
                     # the estimator has disagreed with the track on max_rejections frames in a row:
-                    # the track is what is wrong
+                    # the track is what is wrong (and so were its disagreements: the NIS starts afresh)
                     tr.kf.restart(res.R, res.t, est_cov, self._widen)
-                    tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
+                    tr.status, tr.confidence, tr.since_meas, tr.nis = Status.KEYFRAME, conf, 0, 1.0
                 else:
                     # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
                     # roll) as a fast move: the filter carries the pose and the next frames decide

@@ -3,12 +3,14 @@
 A laparoscopic or robotic instrument enters through a trocar: however it moves, its shaft axis passes
 through that point, fixed in the camera frame while the endoscope holds still. :class:`Trocar` collects
 the shaft axes of independent measurements (the estimator's poses of the shaft on keyframes), locates
-the point closest to them (:func:`~surftrack.instruments.estimate_trocar`, iteratively reweighted so that
-an estimator's wrong axis does not drag it) with its covariance, and gives the constraint "the axis
-passes through it" as a 2D measurement of an axis (:meth:`Trocar.residual`), which
-:class:`~surftrack.track.instrument.InstrumentKalman` fuses on every frame. When that constraint is
-refused ``patience`` times in a row (the camera moved, or the first estimate was wrong), the point and
-the axes behind it are forgotten and located again from the axes that follow.
+the point closest to them (robust least squares, Cauchy in each axis's standard deviation at the point,
+started from the best of the points where pairs of axes meet) with its covariance, and gives the
+constraint "the axis passes through it" as a 2D measurement of an axis (:meth:`Trocar.residual`), which
+:class:`~surftrack.track.instrument.InstrumentKalman` fuses on every frame. The point's error is one
+error shared by all frames, fused each frame as if new: the state grows more certain across its shaft
+than it should (the floor bounds that). When the constraint is refused ``patience`` times in a row
+(the camera moved, or the first estimate was wrong), the point and the axes behind it are forgotten
+and located again from the axes that follow.
 """
 
 from __future__ import annotations
@@ -104,6 +106,8 @@ class Trocar:
         """The point nearest two axes, over random pairs at least 1 deg apart, with the lowest robust
         cost over all axes (None when no pair pivots that much)."""
         axes = list(self.axes)
+        if len(axes) < 2:
+            return None
         rng = np.random.default_rng(len(axes))  # repeatable
         best, best_cost = None, math.inf
         for _ in range(pairs):
