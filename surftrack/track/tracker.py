@@ -142,9 +142,10 @@ def confidence(pos_cov: np.ndarray, nis: float, moved_mm: float, diameter_mm: fl
     allow: covariance matching), plus ``moved_mm`` (how far smoothing moved the pose) squared spread over
     the three axes, the standard deviations inflated by ``cfg.confidence_scale``. The probability is
     counted over a fixed set of standard-normal samples (the covariance is not round: depth is the least
-    certain). On the three development clips it ranked ADD with a Spearman rho of -0.57 against -0.39
-    for the covariance alone, which ranked clip 22's errors backwards (+0.18: a state settled on a wrong
-    configuration, tight and wrong). The rotation's uncertainty is not in it."""
+    certain). On the three development clips (docs/decisions.md) it ranked ADD with a Spearman rho of
+    -0.57 against -0.39 for the earlier ``exp(-s^2 / 2c^2)`` of the covariance; the covariance alone
+    ranked clip 22's errors backwards (+0.18: a state settled on a wrong configuration, tight and
+    wrong). The rotation's uncertainty is not in it."""
     C = np.asarray(pos_cov, np.float64) * max(nis, 0.0) + np.eye(3) * (moved_mm ** 2 / 3.0)
     var = np.clip(np.linalg.eigvalsh(0.5 * (C + C.T)), 0.0, None) * cfg.confidence_scale ** 2
     r = cfg.confidence_add * diameter_mm
