@@ -66,8 +66,9 @@ class TrackConfig:
     every measurement of one part (keyframe, silhouette) moves the others consistently, a hidden part
     keeps the pose the rest implies and the joints are read off the state. On eight held-out clips it
     scored +6.0 / -1.8 / +6.2 / +1.0 points of ADD-10 against a filter per part, within the clips'
-    spread; on the 15 fps demo clip its wrist and jaws lose 20-28 points and its confidence ranks
-    nothing (docs/results/2026-12-03-articulated.md), so it is not the default yet. The joints' white-noise acceleration is ``joint_accel_std_rad_s2`` (8 let the jaws jitter 1.1-1.2
+    spread; on the 15 fps demo clip its wrist and jaws lose 20-28 points and their confidence does
+    not rank their errors (docs/results/2026-12-03-articulated.md, 2026-12-03-confidence.md), so it is
+    not the default yet. The joints' white-noise acceleration is ``joint_accel_std_rad_s2`` (8 let the jaws jitter 1.1-1.2
     deg a frame on the tuning clip, 2 kept them at 0.5). On a keyframe with the kinematic fit, the instrument's parts'
     poses come from one joint fit: each is fused with the estimator's covariance times the number of
     them (one measurement of the state, not one per part).
