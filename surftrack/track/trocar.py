@@ -10,7 +10,7 @@ constraint "the axis passes through it" as a 2D measurement of an axis (:meth:`T
 error shared by all frames, fused each frame as if new: the state grows more certain across its shaft
 than it should (the floor bounds that). When the constraint is refused ``patience`` times in a row
 (the camera moved, or the first estimate was wrong), the point and the axes behind it are forgotten
-and located again from the axes that follow.
+and located again from the axes that follow; likewise when that many new axes in a row miss it.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ class Trocar:
     direction's error dominates); ``floor_mm``: how far a real shaft strays from the point (the trocar's
     play in the abdominal wall, the model's error), added to the constraint's standard deviation;
     ``max_std_mm``: a point less certain than this across the axes is not used; ``patience``: refusals
-    in a row after which it is forgotten; ``behind_mm``: the trocar lies at least this far behind each
+    of the constraint, or new axes missing the point, in a row after which it is forgotten; ``behind_mm``: the trocar lies at least this far behind each
     measured axis point (proximal, where the shaft comes from: an instrument that barely moves has
     axes that all pass near its own parts too, a minimum the point must not fall into)."""
 
@@ -49,12 +49,27 @@ class Trocar:
         self.point: np.ndarray | None = None
         self.cov: np.ndarray | None = None
         self.refused = 0
+        self.missed: list[tuple[np.ndarray, np.ndarray]] = []  # the latest axes in a row that missed the point
 
     def add_axis(self, origin: np.ndarray, direction: np.ndarray) -> None:
         """A measured shaft axis: the line through ``origin`` (3,) mm (the measured part's axis point)
         along ``direction`` (3,); the point is located again from all kept axes."""
         d = np.asarray(direction, np.float64)
-        self.axes.append((np.asarray(origin, np.float64).copy(), d / np.linalg.norm(d)))
+        axis = (np.asarray(origin, np.float64).copy(), d / np.linalg.norm(d))
+        if self.point is not None:
+            # axes that keep missing the point (beyond 3 of their standard deviations) mean the camera
+            # moved: after ``patience`` in a row, only those are kept and the point is located afresh
+            v = self.point - axis[0]
+            s = float(axis[1] @ v)
+            miss = np.linalg.norm(v - axis[1] * s) > 3.0 * math.sqrt(self.axis_var_mm2 + s * s * self.axis_var_rad2)
+            self.missed = self.missed + [axis] if miss else []
+            if len(self.missed) >= self.patience:
+                self.axes = deque(self.missed, maxlen=self.axes.maxlen)
+                self.missed, self.point, self.cov = [], None, None
+                if len(self.axes) >= self.after:
+                    self._locate()
+                return
+        self.axes.append(axis)
         if len(self.axes) >= self.after:
             self._locate()
 
@@ -151,7 +166,7 @@ class Trocar:
         if self.refused >= self.patience:
             self.axes.clear()
             self.point = self.cov = None
-            self.refused = 0
+            self.refused, self.missed = 0, []
 
     def accept(self) -> None:
         self.refused = 0
