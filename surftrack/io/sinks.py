@@ -130,7 +130,8 @@ class TumSink:
 class JointsSink:
     """Each instrument's joint angles, as foxglove.JointStates in the MCAP (with their rates as
     ``velocity``, rad/s, where known, and the tool tip, :meth:`~surftrack.instruments.Instrument.tool_tip`,
-    on ``.../tool_tip``, with its uncertainty on ``.../tool_tip_std`` when read off the state) and, with ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`.
+    on ``.../tool_tip``, with its uncertainty on ``.../tool_tip_std`` when read off the state) and, with
+    ``csv``, rows of a :class:`~surftrack.io.joints_csv.JointCsvWriter`.
     An instrument tracked as one articulated state (:mod:`surftrack.track.instrument`) has its joints
     read off that (smoothed) state; otherwise ``fitters`` ((instrument, instance) ->
     :class:`~surftrack.track.articulation.ArticulationTracker`) fit them to the parts' poses.
