@@ -36,9 +36,10 @@ class Trocar:
     direction's error dominates); ``floor_mm``: how far a real shaft strays from the point (the trocar's
     play in the abdominal wall, the model's error), added to the constraint's standard deviation;
     ``max_std_mm``: a point less certain than this across the axes is not used; ``patience``: refusals
-    of the constraint, or new axes missing the point, in a row after which it is forgotten; ``behind_mm``: the trocar lies at least this far behind each
-    measured axis point (proximal, where the shaft comes from: an instrument that barely moves has
-    axes that all pass near its own parts too, a minimum the point must not fall into)."""
+    of the constraint, or new axes missing the point, in a row after which it is forgotten;
+    ``behind_mm``: the trocar lies at least this far behind each measured axis point (proximal, where
+    the shaft comes from: an instrument that barely moves has axes that all pass near its own parts
+    too, a minimum the point must not fall into)."""
 
     def __init__(self, after: int = 8, history: int = 200, axis_std_mm: float = 3.0, axis_std_deg: float = 5.0,
                  floor_mm: float = 2.0, max_std_mm: float = 20.0, patience: int = 10, behind_mm: float = 20.0):
