@@ -74,14 +74,20 @@ class Trocar:
         if len(self.axes) >= self.after:
             self._locate()
 
-    def _normalised(self, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(each axis's distance from ``c`` in its own standard deviations, those variances mm^2)."""
+    def _offsets(self, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(each axis's offset (n, 3) to ``c`` across it, in its standard deviations at ``c``; ``c``'s
+        position along each axis (n,) mm; those standard deviations (n,) mm)."""
         O = np.array([o for o, _ in self.axes])
         D = np.array([d for _, d in self.axes])
         V = c - O
         s = np.einsum("ij,ij->i", V, D)
-        var = self.axis_var_mm2 + s * s * self.axis_var_rad2
-        return np.linalg.norm(V - D * s[:, None], axis=1) / np.sqrt(var), var
+        sd = np.sqrt(self.axis_var_mm2 + s * s * self.axis_var_rad2)
+        return (V - D * s[:, None]) / sd[:, None], s, sd
+
+    def _normalised(self, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(each axis's distance from ``c`` in its own standard deviations, those variances mm^2)."""
+        off, _, sd = self._offsets(c)
+        return np.linalg.norm(off, axis=1), sd * sd
 
     def _locate(self) -> None:
         """The point minimising the axes' robust (Cauchy, in standard deviations) distances, each axis
@@ -93,15 +99,10 @@ class Trocar:
         if c is None:
             self.point = self.cov = None
             return
-        O = np.array([o for o, _ in self.axes])
-        D = np.array([d for _, d in self.axes])
-
         def scaled(p: np.ndarray) -> np.ndarray:
-            V = p - O
-            s = np.einsum("ij,ij->i", V, D)
-            sd = np.sqrt(self.axis_var_mm2 + s * s * self.axis_var_rad2)
+            off, s, sd = self._offsets(p)
             ahead = np.maximum(s + self.behind_mm, 0.0) / sd  # in front of where it may be
-            return np.concatenate([((V - D * s[:, None]) / sd[:, None]).ravel(), ahead])
+            return np.concatenate([off.ravel(), ahead])
 
         c = least_squares(scaled, c, loss="cauchy", f_scale=2.0, x_scale=10.0).x
         r, var = self._normalised(c)
