@@ -12,6 +12,7 @@ part's pose (part-to-camera).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -134,16 +135,22 @@ def rcm_base_pose(trocar: np.ndarray, pitch_point: np.ndarray, roll_reference: n
     ``roll_reference`` (default: camera +z, the viewing direction) orthogonal to the shaft, so zero roll is
     a well-defined, smooth function of the shaft direction; roll then turns about the shaft.
     """
-    trocar = np.asarray(trocar, dtype=np.float64)
-    pitch_point = np.asarray(pitch_point, dtype=np.float64)
-    z = pitch_point - trocar
-    n = np.linalg.norm(z)
+    # plain floats: the instrument fit builds this pose several times per solver iteration
+    px, py, pz = (float(v) for v in np.asarray(pitch_point, dtype=np.float64).reshape(3))
+    tx, ty, tz = (float(v) for v in np.asarray(trocar, dtype=np.float64).reshape(3))
+    zx, zy, zz = px - tx, py - ty, pz - tz
+    n = math.sqrt(zx * zx + zy * zy + zz * zz)
     if n < 1e-6:
         raise ValueError("the pitch point must differ from the trocar point")
-    z /= n
-    ref = np.array([0.0, 0.0, 1.0]) if roll_reference is None else np.asarray(roll_reference, dtype=np.float64)
-    x = ref - z * (ref @ z)
-    if np.linalg.norm(x) < 1e-6:  # shaft along the reference: any perpendicular will do
-        x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    return se3(np.stack([x, np.cross(z, x), z], axis=1), pitch_point)
+    zx, zy, zz = zx / n, zy / n, zz / n
+    rx, ry, rz = (0.0, 0.0, 1.0) if roll_reference is None else (
+        float(v) for v in np.asarray(roll_reference, dtype=np.float64).reshape(3))
+    dot = rx * zx + ry * zy + rz * zz
+    xx, xy, xz = rx - zx * dot, ry - zy * dot, rz - zz * dot
+    if math.sqrt(xx * xx + xy * xy + xz * xz) < 1e-6:  # shaft along the reference: any perpendicular will do
+        ax, ay, az = (1.0, 0.0, 0.0) if abs(zx) < 0.9 else (0.0, 1.0, 0.0)
+        xx, xy, xz = zy * az - zz * ay, zz * ax - zx * az, zx * ay - zy * ax
+    m = math.sqrt(xx * xx + xy * xy + xz * xz)
+    xx, xy, xz = xx / m, xy / m, xz / m
+    yx, yy, yz = zy * xz - zz * xy, zz * xx - zx * xz, zx * xy - zy * xx
+    return np.array([[xx, yx, zx, px], [xy, yy, zy, py], [xz, yz, zz, pz], [0.0, 0.0, 0.0, 1.0]])
