@@ -426,7 +426,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     from surftrack.io.analyze import analyze_mcap, format_analysis, plot_analysis
 
     try:
-        s = analyze_mcap(args.mcap)
+        s = analyze_mcap(args.mcap, min_confidence=args.min_confidence)
     except ValueError as e:
         raise CLIError(str(e)) from None
     print(format_analysis(s).rstrip("\n"))
@@ -576,6 +576,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "tracking MCAP (table and PNG)")
     an.add_argument("mcap", help="MCAP written by `surftrack VIDEO ...`")
     an.add_argument("--png", help="plot file (default: <mcap stem>.analysis.png)")
+    an.add_argument("--min-confidence", type=float, default=0.0, metavar="C",
+                    help="count motion only over frames whose confidence (the probability of being within "
+                         "ADD-10) is >= C, 0-1 (default 0: every posed frame)")
     an.set_defaults(func=_cmd_analyze)
 
     ba = sub.add_parser("batch", help="track a folder of videos (or a CSV manifest) on Ray: one task per video, "

@@ -153,3 +153,39 @@ def test_tool_tip_uncertainty_bounds_its_path(tmp_path):
     assert tip["path_length_sd_bound_mm"] == pytest.approx(2.0 * (N - 1) / FPS)
     assert tip["position_std_mm"] == pytest.approx(3.0)
     assert "tip_path_sd<=" in format_analysis(analyze_mcap(path))
+
+
+def test_min_confidence_leaves_doubted_frames_out(tmp_path, capsys):
+    """A part moving at 50 mm/s whose track is 40 mm off on frames 10-12 (confidence 0.2 there): over
+    every frame the excursion adds about 70 mm of path; with ``min_confidence`` 0.5 the steps touching those
+    frames are not counted, for the part and for its instrument's tool tip."""
+    from surftrack.cli import main
+
+    path = tmp_path / "doubt.mcap"
+    v = np.array([0.0, 30.0, 40.0])
+    doubted = {10, 11, 12}
+    with TrackWriter(path) as w:
+        for i in range(N):
+            t = i / FPS
+            off = np.array([40.0, 0.0, 0.0]) if i in doubted else 0.0
+            p = np.array([0.0, 0.0, 60.0]) + v * t + off
+            w.pose("lnd.0.jaw", t, np.eye(3), p)
+            w.status(t, "lnd.0.jaw", "tracking", 0.2 if i in doubted else 0.9)
+            w.pose("lnd.0.shaft", t, np.eye(3), p - off - 20.0)
+            w.status(t, "lnd.0.shaft", "tracking", 0.95)
+            w.joint_states(t, "lnd.0", ["roll"], [0.0])
+            w.tool_tip(t, "lnd.0", np.eye(3), p + 5.0)
+    every = analyze_mcap(path)
+    excursion = 2 * math.hypot(40.0, 5.0)  # off at frame 10, back at 13 (5 mm of motion per step)
+    assert every["parts"]["lnd.0.jaw"]["path_length_mm"] == pytest.approx(5.0 * (N - 3) + excursion, rel=1e-6)
+    sure = analyze_mcap(path, min_confidence=0.5)
+    jaw, tip = sure["parts"]["lnd.0.jaw"], sure["instruments"]["lnd.0"]["tool_tip"]
+    assert jaw["tracked_frames"] == N - len(doubted)
+    assert jaw["path_length_mm"] == pytest.approx(5.0 * (N - 1 - 4), rel=1e-6)  # 4 steps touch 10-12
+    assert tip["frames"] == N - len(doubted) and tip["path_length_mm"] == pytest.approx(5.0 * (N - 1 - 4), rel=1e-6)
+    assert sure["parts"]["lnd.0.shaft"]["path_length_mm"] == pytest.approx(5.0 * (N - 1), rel=1e-6)
+    assert "confidence >= 0.5" in format_analysis(sure) and "confidence" not in format_analysis(every).split("\n")[1]
+    with pytest.raises(ValueError, match="min_confidence"):
+        analyze_mcap(path, min_confidence=1.5)
+    assert main(["analyze", str(path), "--min-confidence", "0.5", "--png", str(tmp_path / "a.png")]) == 0
+    assert "confidence >= 0.5" in capsys.readouterr().out

@@ -10,7 +10,9 @@ Kinematics: path length (sum of the frame-to-frame translation of the part's ori
 over the same pairs of consecutive visible frames with a pose, and the speed error: the median over
 those pairs of |estimated - true speed|, relative to the median true speed. Given the instruments, the
 same for each instrument's tool tip (:meth:`~surftrack.instruments.Instrument.tool_tip`, between the jaw
-tips), from the tracked part poses (:meth:`TrackScore.tip_summary`). Confidence calibration:
+tips), from the tracked part poses (:meth:`TrackScore.tip_summary`). The path length again over the
+steps both of whose frames have confidence >= 0.5 (what ``surftrack analyze --min-confidence 0.5``
+counts), with the share of steps that leaves. Confidence calibration:
 ADD-10 of the frames whose confidence is >= 0.5 and of those below, and Spearman's rank correlation
 between confidence and ADD (negative when confidence predicts error).
 """
@@ -73,10 +75,10 @@ class TrackScore:
                 self._diam[name] = diameter_bbox_diagonal(v)
             row = self.rows.setdefault(name, {"re": [], "te": [], "add": [], "visible": 0, "posed": 0,
                                               "jit_t": [], "jit_r": [], "conf": [], "step_est": [],
-                                              "step_gt": []})
+                                              "step_gt": [], "step_conf": []})
             Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
             prev = self._prev.get(name)
-            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s)
+            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence)
             if vis < self.min_visible_px:
                 continue
             row["visible"] += 1
@@ -95,6 +97,7 @@ class TrackScore:
                 dt_s = time_s - prev[5]
                 row["step_est"].append((dt, dt_s))
                 row["step_gt"].append(gt_)
+                row["step_conf"].append(min(prev[6], s.confidence))
         self._add_tips(index, time_s, states)
 
     def _add_tips(self, index: int, time_s: float, states: list[PartState]) -> None:
@@ -160,6 +163,7 @@ class TrackScore:
                          if len(true) and np.median(true) > 0 else float("nan"))
             rho = (float(spearmanr(conf, r["add"]).statistic)
                    if len(conf) > 2 and np.ptp(conf) > 0 and np.ptp(r["add"]) > 0 else float("nan"))
+            sure = np.asarray(r["step_conf"]) >= 0.5
             out[name] = {
                 "visible_frames": r["visible"], "posed_frames": r["posed"],
                 "re_median_deg": float(np.median(r["re"])) if r["re"] else float("nan"),
@@ -172,6 +176,11 @@ class TrackScore:
                 "path_mm": float(est.sum()), "path_gt_mm": float(true.sum()),
                 "path_ratio": float(est.sum() / true.sum()) if true.sum() > 0 else float("nan"),
                 "speed_err_pct": speed_err,
+                "path_conf_mm": float(est[sure].sum()) if len(est) else 0.0,
+                "path_conf_gt_mm": float(true[sure].sum()) if len(true) else 0.0,
+                "path_conf_ratio": (float(est[sure].sum() / true[sure].sum())
+                                    if len(true) and true[sure].sum() > 0 else float("nan")),
+                "path_conf_share_pct": 100.0 * float(sure.mean()) if len(sure) else float("nan"),
                 "add10_conf_hi_pct": 100.0 * float(hit[conf >= 0.5].mean()) if (conf >= 0.5).any() else float("nan"),
                 "add10_conf_lo_pct": 100.0 * float(hit[conf < 0.5].mean()) if (conf < 0.5).any() else float("nan"),
                 "conf_hi_share_pct": 100.0 * float((conf >= 0.5).mean()) if len(conf) else float("nan"),
@@ -192,12 +201,15 @@ def format_tip_summary(summary: dict[str, dict]) -> str:
 def format_summary(summary: dict[str, dict]) -> str:
     """A markdown table of :meth:`TrackScore.summary`."""
     lines = ["| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) "
-             "| path est / gt (mm) | speed err (%) | ADD-10 conf >= / < 0.5 (%, share >=) | rho(conf, ADD) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| path est / gt (mm) | speed err (%) | path over conf >= 0.5 (share of steps %) "
+             "| ADD-10 conf >= / < 0.5 (%, share >=) | rho(conf, ADD) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in summary.items():
         lines.append(f"| {name} | {r['visible_frames']} | {r['posed_frames']} | {r['re_median_deg']:.1f} | "
                      f"{r['te_median_mm']:.1f} | {r['add_mean_mm']:.1f} | {r['add10_pct']:.1f} | "
                      f"{r['jitter_mm']:.2f} / {r['jitter_deg']:.2f} | {r['path_mm']:.0f} / {r['path_gt_mm']:.0f} "
-                     f"= {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} | {r['add10_conf_hi_pct']:.0f} / "
+                     f"= {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} | {r['path_conf_mm']:.0f} / "
+                     f"{r['path_conf_gt_mm']:.0f} = {r['path_conf_ratio']:.2f} ({r['path_conf_share_pct']:.0f}) | "
+                     f"{r['add10_conf_hi_pct']:.0f} / "
                      f"{r['add10_conf_lo_pct']:.0f} ({r['conf_hi_share_pct']:.0f}) | {r['conf_add_spearman']:.2f} |")
     return "\n".join(lines) + "\n"
