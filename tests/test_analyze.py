@@ -187,5 +187,19 @@ def test_min_confidence_leaves_doubted_frames_out(tmp_path, capsys):
     assert "confidence >= 0.5" in format_analysis(sure) and "confidence" not in format_analysis(every).split("\n")[1]
     with pytest.raises(ValueError, match="min_confidence"):
         analyze_mcap(path, min_confidence=1.5)
+
+    # doubted on every other frame: no step has two trusted ends, for the part nor for the tip
+    alternate = tmp_path / "alternate.mcap"
+    with TrackWriter(alternate) as w:
+        for i in range(N):
+            t = i / FPS
+            w.pose("lnd.0.jaw", t, np.eye(3), v * t)
+            w.status(t, "lnd.0.jaw", "tracking", 0.2 if i % 2 else 0.9)
+            w.joint_states(t, "lnd.0", ["roll"], [0.0])
+            w.tool_tip(t, "lnd.0", np.eye(3), v * t)
+    sure = analyze_mcap(alternate, min_confidence=0.5)
+    assert sure["parts"]["lnd.0.jaw"]["path_length_mm"] == 0.0
+    assert sure["instruments"]["lnd.0"]["tool_tip"]["path_length_mm"] == 0.0
+    assert analyze_mcap(alternate)["instruments"]["lnd.0"]["tool_tip"]["path_length_mm"] == pytest.approx(5.0 * (N - 1))
     assert main(["analyze", str(path), "--min-confidence", "0.5", "--png", str(tmp_path / "a.png")]) == 0
     assert "confidence >= 0.5" in capsys.readouterr().out

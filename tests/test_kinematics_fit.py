@@ -91,6 +91,44 @@ def test_the_fits_jacobian_matches_central_differences(lnd):
         assert np.abs(J - J_num).max() < 1e-5 * max(1.0, np.abs(J_num).max()), trial
 
 
+def test_the_fits_jacobian_on_an_unusual_chain():
+    """The same check on a chain the LND does not exercise: joint axes of any length, fixed joint
+    rotations, offset joints, angles driven by several joint variables, a grandchild part, a roll
+    reference other than the camera's axis, roll beyond a turn, any subset of free joints."""
+    import types
+
+    from surftrack.instruments.fit import _Problem
+    from surftrack.instruments.kinematics import KinematicChain, PartJoint
+
+    def fixed(rotvec):
+        return tuple(so3_exp(np.asarray(rotvec, dtype=np.float64)).ravel())
+
+    chain = KinematicChain({
+        "base": PartJoint(None, (1.0, 2.0, -30.0), (0.0, 0.0, 2.5), {"roll": 1.0}, fixed([0.1, 0.2, 0.3])),
+        "mid": PartJoint("base", (3.0, -1.0, 30.0), (2.0, 1.0, 0.5), {"pitch": 1.3, "roll": 0.2}, fixed([0.5, -0.2, 0.1])),
+        "left": PartJoint("mid", (0.0, 4.0, 10.0), (0.3, 0.0, 3.0), {"yaw": 1.0, "opening": 0.5}, fixed([0.0, 0.4, 0.0])),
+        "right": PartJoint("mid", (0.0, 4.0, 10.0), (0.3, 0.0, 3.0), {"yaw": 1.0, "opening": -0.5}),
+        "tip": PartJoint("left", (1.0, 1.0, 5.0), (-1.0, 2.0, 0.3), {"opening": 0.7, "pitch": -0.4}),
+    })
+    inst = types.SimpleNamespace(chain=chain, forward=chain.forward)
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        names = [n for n in chain.order if rng.random() < 0.6] or ["tip"]
+        q = JointState(*(rng.uniform(-3.0, 3.0, 4) * (4.0 if trial % 5 == 0 else 1.0)))
+        poses = chain.forward(rcm_base_pose(np.zeros(3), rng.normal(0.0, 50.0, 3) + [0.0, 0.0, 80.0]), q)
+        R_obs = np.stack([poses[n][:3, :3] @ so3_exp(rng.normal(0.0, 0.8, 3)) for n in names])
+        t_obs = np.stack([poses[n][:3, 3] + rng.normal(0.0, 5.0, 3) for n in names])
+        cfg = FitConfig(roll_reference=None if trial % 2 else tuple(rng.normal(size=3)))
+        prob = _Problem(inst, names, R_obs, t_obs, rng.uniform(0.5, 3.0, (len(names), 2)),
+                        rng.normal(0.0, 30.0, 3) if trial % 3 == 0 else None, cfg)
+        prob.set_direction(rng.normal(size=3))
+        prob.q_ref = rng.uniform(-1.0, 1.0, 4)
+        prob.free = sorted(rng.choice(4, size=int(rng.integers(0, 5)), replace=False).tolist())
+        x = np.concatenate([rng.normal(0.0, 50.0, 3), rng.normal(0.0, 0.3, 2), rng.uniform(-3.0, 3.0, len(prob.free))])
+        J, J_num = prob.analytic_jacobian(x), prob.jacobian(x)
+        assert np.abs(J - J_num).max() < 1e-5 * max(1.0, np.abs(J_num).max()), trial
+
+
 # ----------------------------------------------------------------------------------------- exact poses
 def test_exact_poses_recover_joints_and_base(lnd):
     rng = np.random.default_rng(0)

@@ -18,6 +18,14 @@ from scipy.spatial.transform import Rotation, Slerp
 _EPS = 1e-9
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors in plain floats: ``np.cross`` without its axis handling, an order
+    of magnitude faster on one pair (for per-part loops of solvers)."""
+    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
+    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrices (..., 3, 3) of vectors (..., 3): ``skew(v) @ x == cross(v, x)``."""
     v = np.asarray(v, dtype=np.float64)

@@ -50,7 +50,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from surftrack.geometry import rotation_angle_deg, se3, se3_inv, so3_exp, so3_log, so3_right_jacobian
+from surftrack.geometry import cross3, rotation_angle_deg, se3, se3_inv, so3_exp, so3_log, so3_right_jacobian
 from surftrack.instruments.kinematics import JOINT_NAMES, JointState, rcm_base_pose
 from surftrack.instruments.library import Instrument
 
@@ -174,13 +174,6 @@ def _tangent_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(d, e1)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` of two 3-vectors without its axis handling (an order of magnitude faster on one pair)."""
-    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
-    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
 def _axis_angle(M: np.ndarray, axis: np.ndarray) -> float:
     """Angle of rotation ``M`` about unit ``axis`` (exact for ``M = Rot(axis, a)``; the part of ``M`` about
     that axis otherwise)."""
@@ -218,10 +211,9 @@ class _Problem:
         self.q_ref = np.zeros(len(JOINT_NAMES))
         self.free = list(range(len(JOINT_NAMES)))
         chain = instrument.chain
-        # per part: its joint's fixed rotation, unit axis and angle coefficients (in JOINT_NAMES order),
-        # and the parts from the root down to it (whose joints move it)
-        self._joint_data = {n: (np.asarray(j.rotation, dtype=np.float64).reshape(3, 3),
-                                np.asarray(j.axis, dtype=np.float64) / np.linalg.norm(j.axis),
+        # per part: its joint's unit axis and angle coefficients (in JOINT_NAMES order), and the parts
+        # from the root down to it (whose joints move it)
+        self._joint_data = {n: (np.asarray(j.axis, dtype=np.float64) / np.linalg.norm(j.axis),
                                 np.array([j.coefficients.get(k, 0.0) for k in JOINT_NAMES]))
                             for n, j in chain.joints.items()}
         self._ancestry: dict[str, list[str]] = {}
@@ -260,27 +252,19 @@ class _Problem:
         """Jacobian of :meth:`residuals` at ``x`` (rows as the residuals, one column per entry of ``x``).
 
         Each parameter moves every part by a twist (camera frame): the origin translates them all, the
-        direction tangent turns the base about its origin (its angular rate by central differences of
-        the base alone, whose zero-roll convention has no handy closed form), a joint turns the parts
-        below it about its axis. A part turned by ``w`` changes its rotation residual ``log(R^T R_obs)``
-        by ``-J_r^-1(log(R^T R_obs)) R_obs^T w``. As exact as the residuals and a few times cheaper than
-        differencing them, which is most of the instrument fit's time (once per keyframe)."""
-        chain = self.instrument.chain
+        direction tangent turns the base about its origin, a joint turns the parts below it about its
+        axis. A part turned by ``w`` changes its rotation residual ``log(R^T R_obs)`` by
+        ``-J_r^-1(log(R^T R_obs)) R_obs^T w``. Exact but for the base's turning rate per direction
+        tangent, taken by central differences of the base alone (its zero-roll convention has no handy
+        closed form; ~1e-9 relative). Differencing all the residuals instead was most of the fit's
+        time, and the fit runs on every keyframe and every frame of per-frame estimation."""
         B = self.base(x)
         q = np.asarray(self.joints(x))
         o = B[:3, 3]
-        poses: dict[str, np.ndarray] = {}
-        pivot: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # part -> its joint's axis and point (camera)
-        for name in chain.order:
-            j = chain.joints[name]
-            parent = B if j.parent is None else poses[j.parent]
-            fixed, axis, coef = self._joint_data[name]
-            Rj = parent[:3, :3] @ fixed
-            Tl = np.eye(4)
-            Tl[:3, :3] = fixed @ so3_exp(axis * float(coef @ q))
-            Tl[:3, 3] = j.origin
-            poses[name] = parent @ Tl
-            pivot[name] = (Rj @ axis, parent[:3, :3] @ np.asarray(j.origin, dtype=np.float64) + parent[:3, 3])
+        poses = self.instrument.forward(B, JointState(*q))
+        # a part's joint axis in the camera frame (its rotation keeps its own axis) and the joint's point
+        # (the part's origin)
+        pivot = {n: (T[:3, :3] @ self._joint_data[n][0], T[:3, 3]) for n, T in poses.items()}
         h = 1e-6
         w_base = []
         for k in (3, 4):
@@ -299,14 +283,14 @@ class _Problem:
             vel[:, :3] = np.eye(3)
             for c, wb in enumerate(w_base):
                 omega[:, 3 + c] = wb
-                vel[:, 3 + c] = _cross(wb, t - o)
+                vel[:, 3 + c] = cross3(wb, t - o)
             for c, k in enumerate(self.free):
                 for a in self._ancestry[name]:
-                    coef = self._joint_data[a][2][k]
+                    coef = self._joint_data[a][1][k]
                     if coef != 0.0:
                         u, p = pivot[a]
                         omega[:, _N_BASE + c] += coef * u
-                        vel[:, _N_BASE + c] += coef * _cross(u, t - p)
+                        vel[:, _N_BASE + c] += coef * cross3(u, t - p)
             phi = so3_log(T[:3, :3].T @ self.R_obs[i])
             D = -self.cfg.rotation_scale_mm * np.linalg.solve(so3_right_jacobian(phi), self.R_obs[i].T)
             rows.append(np.vstack([D @ omega, vel]) * self.sw[i][:, None])
@@ -317,7 +301,7 @@ class _Problem:
             J = np.zeros((3, n_x))
             J[:, :3] = -P
             for c, wb in enumerate(w_base):
-                dd = _cross(wb, d)
+                dd = cross3(wb, d)
                 J[:, 3 + c] = -dd * (d @ v) - d * (dd @ v)
             rows.append(self.sw_trocar * J)
         return np.vstack(rows)
