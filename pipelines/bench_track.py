@@ -4,7 +4,7 @@ ground truth, in one run.
     python pipelines/bench_track.py [--model CKPT] [--clip DIR ...] [--seconds 10] [--fps 30] [--seed 3]
                                     [--parts shaft,wrist,jaw_left,jaw_right] [--device cpu|cuda]
                                     [--threads N] [--keyframe-every N] [--no-kinematic] [--preset P]
-                                    [--views N] [--lag-s S] [--config YAML]
+                                    [--views N] [--lag-s S] [--config YAML] [--solver-seed N]
 
 Makes (or reuses, with --clip, repeatable) a 640x512 synthetic clip of the Large Needle Driver crossed by
 a second tool (``surftrack synth-clip``), keeps the boxes of the chosen parts, then per clip:
@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, help="torch intra-op threads")
     ap.add_argument("--keyframe-every", type=int)
     ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
+    ap.add_argument("--solver-seed", type=int, help="the estimator's RANSAC seed (default: the tracking config's)")
     ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
     ap.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     ap.add_argument("--lag-s", type=float, help="smoothing lag (default: the tracking config's)")
@@ -132,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("keyframe_every", "preset", "views"):
         if getattr(args, key):
             cfg = cfg.replace(**{key: getattr(args, key)})
+    if args.solver_seed is not None:
+        cfg = cfg.replace(solver_seed=args.solver_seed)
     if args.keyframe_every:
         cfg = cfg.replace(keyframe_max_s=0.0)  # frames, as asked (as the main command's --keyframe-every)
     if args.lag_s is not None:

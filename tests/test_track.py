@@ -752,3 +752,13 @@ def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():
         TrackConfig(keyframe_max_s=-1.0)
     args = build_parser().parse_args(["track", "v.mp4", "--boxes", "d.json", "--keyframe-every", "30"])
     assert _track_config(args).for_fps(30.0).keyframe_every == 30
+
+
+def test_the_solver_seed_reaches_the_keyframes_estimator():
+    """``solver_seed`` replaces the preset's RANSAC seed (runs are compared over seeds); negative ones
+    are refused."""
+    assert TrackConfig().estimator_preset().seed == PRESETS["fast"].seed
+    assert TrackConfig(solver_seed=2).estimator_preset() == PRESETS["fast"].replace(seed=2)
+    assert TrackConfig(solver_seed=3, views=5).estimator_preset().views == 5
+    with pytest.raises(ValueError, match="solver_seed"):
+        TrackConfig(solver_seed=-1)

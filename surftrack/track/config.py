@@ -21,7 +21,9 @@ class TrackConfigError(ValueError):
 @dataclass(frozen=True)
 class TrackConfig:
     """``preset``: the estimator preset for keyframes; ``views``: crop views per box there (1-9,
-    :mod:`surftrack.pose.views`; 0 keeps the preset's). ``keyframe_every``: frames between estimator runs
+    :mod:`surftrack.pose.views`; 0 keeps the preset's); ``solver_seed``: the seed of its RANSAC draws
+    (a track's keyframes choose among near-tied hypotheses, so a run's figures move with it: compare
+    configurations over seeds, as for still images). ``keyframe_every``: frames between estimator runs
     on a tracked part (the tracked pose is offered as a prior, so a keyframe replaces it only when the
     estimator finds a pose that explains the image better); ``keyframe_max_s``: the same bound in seconds
     of video, whichever is tighter (:meth:`for_fps`; 0 = frames only): the parts move between keyframes
@@ -101,6 +103,7 @@ class TrackConfig:
 
     preset: str = "fast"
     views: int = 0
+    solver_seed: int = 0
     keyframe_every: int = 10
     keyframe_max_s: float = 0.34
     flow: bool = False
@@ -162,6 +165,8 @@ class TrackConfig:
             raise ValueError(f"preset must be one of {', '.join(sorted(PRESETS))}, got {self.preset!r}")
         if not 0 <= self.views <= 9:
             raise ValueError(f"views must be 0 (the preset's) or 1-9, got {self.views}")
+        if self.solver_seed < 0:
+            raise ValueError(f"solver_seed must be >= 0, got {self.solver_seed}")
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
         for name in ("min_box_score", "min_iou", "min_visible", "refresh_below", "min_inlier_ratio",
@@ -218,7 +223,8 @@ class TrackConfig:
 
     def estimator_preset(self) -> Preset:
         """The keyframes' estimator preset: ``preset`` with ``views`` where given."""
-        return PRESETS[self.preset] if self.views == 0 else PRESETS[self.preset].replace(views=self.views)
+        preset = PRESETS[self.preset] if self.views == 0 else PRESETS[self.preset].replace(views=self.views)
+        return preset if self.solver_seed == preset.seed else preset.replace(seed=self.solver_seed)
 
     def replace(self, **changes) -> TrackConfig:
         return dataclasses.replace(self, **changes)
