@@ -18,10 +18,10 @@
 the part is within ADD-10, :func:`~surftrack.track.tracker.confidence`) is at least this (a pose
 without a status, or a status without a confidence, then does not count); a tool-tip frame only when
 every part of its instrument logged at that time is (a hidden jaw, logged lost at confidence 0, holds
-the tip out too). Motion through frames the tracker
-doubts (a tool entering close to the lens, a track the estimator keeps contradicting) is then left out
-rather than summed: on the development clip 12 (articulated) the parts' paths came out 1.1-1.6x the
-truth over the steps with confidence >= 0.5 (57-89 % of them) against 1.9-4.1x over all steps
+the tip out too). Motion through frames the tracker doubts (a tool entering close to the lens, a
+track the estimator keeps contradicting) is then left out rather than summed: on clip 12 of the
+tracking benchmark the default run's paths came out 1.0-1.9x the truth over the steps with confidence
+>= 0.5 (36-57 % of them) against 1.7-3.3x over all steps; what remains is mostly jitter
 (docs/results/2026-12-03-fit-speed.md).
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
