@@ -67,7 +67,7 @@ def joint_errors_deg(fit, q) -> np.ndarray:
 
 
 def test_the_fits_jacobian_matches_central_differences(lnd):
-    """The solver's analytic Jacobian against differenced residuals: every part set, far-off observed
+    """The fit's analytic Jacobian against differenced residuals: every part set, far-off observed
     rotations (the log's inverse right Jacobian), the trocar term, held joints."""
     from surftrack.instruments.fit import _Problem
 
