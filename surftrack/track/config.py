@@ -222,9 +222,9 @@ class TrackConfig:
         return dataclasses.asdict(self)
 
     def estimator_preset(self) -> Preset:
-        """The keyframes' estimator preset: ``preset`` with ``views`` where given."""
+        """The keyframes' estimator preset: ``preset`` with ``views`` where given and ``solver_seed``."""
         preset = PRESETS[self.preset] if self.views == 0 else PRESETS[self.preset].replace(views=self.views)
-        return preset if self.solver_seed == preset.seed else preset.replace(seed=self.solver_seed)
+        return preset.replace(seed=self.solver_seed)
 
     def replace(self, **changes) -> TrackConfig:
         return dataclasses.replace(self, **changes)
