@@ -32,7 +32,8 @@ class TrackConfig:
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
-    part whose projected box keeps less than this fraction inside the image is lost. ``max_occluded``:
+    part whose projected box keeps less than this fraction inside the image is lost, unless a detection
+    agrees with it (IoU >= ``min_iou``: a long shaft keeps a small share of its box in view). ``max_occluded``:
     frames a tracked part the estimator does not see keeps its predicted pose while another part of its
     instrument is measured (hidden behind the other tool; the smoother bridges the gap when it is back).
 

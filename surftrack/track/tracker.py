@@ -590,15 +590,21 @@ class Tracker:
         out_boxes: dict[int, Box | None] = {}
         for tr in self.tracks:
             sid = tr.spec.track_id
-            pbox = None
+            pbox, det = None, None
             if tr.has_pose:
                 R, t = tr.kf.pose
                 pbox, inside = projected_box(K, R, t, tr.box_vertices, self.size)
-                if pbox is None or inside < cfg.min_visible:
+                det = self._pick_box(tr, boxes.get(sid, ()), pbox)
+                # a long part (the shaft) keeps a small share of its box in view while it still fills
+                # the image's edge: a detection that agrees with the part where the track puts it says
+                # it is still there (dropping it restarted the shaft on every such frame, no smoothing)
+                seen = det is not None and pbox is not None and box_iou(det, pbox) >= cfg.min_iou
+                if pbox is None or (inside < cfg.min_visible and not seen):
                     tr.drop()
                     tr.info["why_lost"] = "left the image"
                     pbox = None
-            det = self._pick_box(tr, boxes.get(sid, ()), pbox)
+            if pbox is None:
+                det = self._pick_box(tr, boxes.get(sid, ()), None)
             out_boxes[sid] = det if det is not None else pbox
             if tr.has_pose:
                 why = None
