@@ -244,6 +244,34 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
     assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.get("occluded") for s in states)
 
 
+def test_a_shaft_filling_the_image_edge_is_kept_while_its_detection_agrees(clip, lnd_parts, tiny_ckpt):
+    """Most of a long shaft's projected box lies outside the image while the shaft fills the image's
+    edge: a detection that agrees with the track keeps it (its filter carries on: no restart, no
+    keyframe), and without a detection the same share counts as having left the image."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    sid, size = lnd_parts["shaft"], (320, 256)
+    i = max(range(1, len(frames)), key=lambda k: min(gt.pose(k - 1, sid)[2], gt.pose(k, sid)[2]))
+    shaft = next(p for p in model.parts if p.name == "shaft")
+    box, inside = projected_box(K, *gt.pose(i, sid)[:2], shaft.vertices, size)
+    assert inside < 0.7  # the clip's shaft runs out of the image
+    for detected in (True, False):
+        est = _GroundTruthEstimator(model, gt, lnd_parts, 0.0)
+        spec = PartSpec(sid, shaft.obj_id, shaft.instrument, 0, shaft.name, shaft.vertices, shaft.faces)
+        tracker = Tracker(est, K, size, [spec], TrackConfig(keyframe_every=5, kinematic=False, region=False,
+                                                              min_visible=0.7))
+        tracker.set_pose(sid, *gt.pose(i - 1, sid)[:2], (i - 1) / 10.0)
+        est.frame = i
+        (state,) = tracker.step(frames[i], i / 10.0, {sid: [(box, 1.0)]} if detected else None)
+        if detected:
+            # carried by its filter from the pose set on the frame before (no reappearance keyframe)
+            assert state.status != "lost" and "estimator" not in state.info, state.info
+        else:
+            assert state.status == "lost" and state.info["why_lost"] == "left the image"
+
+
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):
     from surftrack.model import load_checkpoint
     from surftrack.pose import PoseEstimator
