@@ -47,8 +47,8 @@ class TrackConfig:
     ``flow_floor_deg`` added (model error) and the filter's pose covariance when the points were lifted to
     3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
     independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
-    remove it.) Estimator poses are fused with ``est_pos_std_mm`` / ``est_rot_std_deg``; an
-    initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+    remove it.) Estimator poses are fused with ``est_pos_std_mm`` along the line of sight,
+    ``est_lateral_std_mm`` across it and ``est_rot_std_deg``; an initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
 
     ``region``: measure parts between keyframes by their silhouettes (:mod:`surftrack.track.region`:
     colour statistics along lines normal to the rendered outline, one fit per instrument through its
@@ -137,6 +137,7 @@ class TrackConfig:
     flow_floor_mm: float = 0.3
     flow_floor_deg: float = 0.3
     est_pos_std_mm: float = 3.0
+    est_lateral_std_mm: float = 3.0
     est_rot_std_deg: float = 5.0
     init_min_inliers: int = 6
     init_min_score: float = 0.0
@@ -189,7 +190,7 @@ class TrackConfig:
             raise ValueError("trocar needs articulated: true (it constrains an instrument's state)")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
-        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_rot_std_deg", "confidence_add",
+        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg", "confidence_add",
                      "confidence_scale", "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg",
                      "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):

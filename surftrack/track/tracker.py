@@ -335,6 +335,19 @@ class Tracker:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
 
+    def est_cov_at(self, t: np.ndarray) -> np.ndarray:
+        """The estimator's pose covariance (6x6: mm^2 for the position, rad^2 for the body rotation) for a
+        part estimated at ``t`` (3,) mm in the camera: ``est_pos_std_mm`` along the line of sight through
+        ``t``, ``est_lateral_std_mm`` across it (a monocular pose pins the image position far better than
+        the depth), ``est_rot_std_deg`` about each axis."""
+        cov = self._est_cov.copy()
+        n = float(np.linalg.norm(t))
+        if n > 0 and np.isfinite(n):
+            u = np.asarray(t, np.float64) / n
+            lat, depth = self.cfg.est_lateral_std_mm**2, self.cfg.est_pos_std_mm**2
+            cov[:3, :3] = lat * np.eye(3) + (depth - lat) * np.outer(u, u)
+        return cov
+
     def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
         estimator's noise (then a keyframe whose prior won is fused as a measurement, not taken as a
@@ -651,21 +664,22 @@ class Tracker:
         share = Counter(id(tr.kf.shared) for (tr, _, _, _), res, good in zip(requests, results, good_results)
                         if isinstance(tr.kf, PartFilter) and good and res.counts.get("kinematic"))
 
-        def est_cov_of(tr: _Track) -> np.ndarray:
+        def est_cov_of(tr: _Track, res) -> np.ndarray:
             k = share[id(tr.kf.shared)] if isinstance(tr.kf, PartFilter) else 0
-            return self._est_cov * k if k > 1 else self._est_cov
+            cov = self.est_cov_at(res.t)
+            return cov * k if k > 1 else cov
 
         # an instrument none of whose parts is tracked starts its state from all of them at once (the
         # joints from their relative rotations), not from the first one's pose alone
         starts: dict[int, tuple[InstrumentKalman, dict, np.ndarray]] = {}
         for (tr, _, _, _), res, good in zip(requests, results, good_results):
             if isinstance(tr.kf, PartFilter) and not tr.kf.shared.active and good:
-                starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}, est_cov_of(tr)))[1][tr.spec.name] = (res.R, res.t)
+                starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}, est_cov_of(tr, res)))[1][tr.spec.name] = (res.R, res.t)
         for shared, poses, cov in starts.values():
             shared.init(poses, time_s, cov)
         unseen: list[tuple[_Track, str]] = []
         for (tr, box, prior, why), res, good in zip(requests, results, good_results):
-            est_cov = est_cov_of(tr)
+            est_cov = est_cov_of(tr, res)
             tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
                            prior_won=bool(res.counts.get("prior_won", 0)),
                            kinematic=bool(res.counts.get("kinematic", 0)))
