@@ -287,6 +287,23 @@ def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):
     Tracker(est, np.eye(3), (64, 64), [], TrackConfig())                 # anchor is simply absent
 
 
+def test_the_estimators_position_noise_is_wide_along_the_line_of_sight():
+    """est_pos_std_mm along the ray through the part, est_lateral_std_mm across it; isotropic when they
+    agree; the rotation block as configured."""
+    from surftrack.track.tracker import estimator_cov
+
+    cfg = TrackConfig(est_pos_std_mm=3.0, est_lateral_std_mm=0.5, est_rot_std_deg=5.0)
+    t = np.array([20.0, -10.0, 80.0])
+    cov = estimator_cov(t, cfg)
+    u = t / np.linalg.norm(t)
+    w, v = np.linalg.eigh(cov[:3, :3])
+    np.testing.assert_allclose(w, [0.25, 0.25, 9.0], atol=1e-9)
+    assert abs(abs(v[:, 2] @ u) - 1.0) < 1e-9
+    np.testing.assert_allclose(cov[3:, 3:], np.eye(3) * np.radians(5.0) ** 2)
+    assert not cov[:3, 3:].any()
+    np.testing.assert_allclose(estimator_cov(t, TrackConfig(est_lateral_std_mm=3.0))[:3, :3], 9.0 * np.eye(3), atol=1e-12)
+
+
 def test_box_helpers():
     assert box_iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
     assert box_iou((0, 0, 10, 10), (20, 20, 5, 5)) == 0.0

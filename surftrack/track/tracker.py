@@ -196,6 +196,20 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
     return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
 
 
+def estimator_cov(t: np.ndarray, cfg: TrackConfig) -> np.ndarray:
+    """The estimator's pose covariance (6x6: mm^2 for the position, rad^2 for the body rotation) for a
+    part estimated at ``t`` (3,) mm in the camera: ``est_pos_std_mm`` along the line of sight through
+    ``t``, ``est_lateral_std_mm`` across it (a monocular pose pins the image position far better than
+    the depth: docs/results/2026-12-04-paths.md), ``est_rot_std_deg`` about each axis."""
+    cov = np.diag([cfg.est_pos_std_mm**2] * 3 + [np.radians(cfg.est_rot_std_deg)**2] * 3)
+    n = float(np.linalg.norm(t))
+    if n > 0 and np.isfinite(n):
+        u = np.asarray(t, np.float64) / n
+        lat, depth = cfg.est_lateral_std_mm**2, cfg.est_pos_std_mm**2
+        cov[:3, :3] = lat * np.eye(3) + (depth - lat) * np.outer(u, u)
+    return cov
+
+
 class _Track:
     """Mutable per-part state."""
 
@@ -334,19 +348,6 @@ class Tracker:
             if box_iou(best[0], pbox) > 0.0:
                 return best[0]
         return max(cands, key=lambda bs: bs[1])[0]
-
-    def est_cov_at(self, t: np.ndarray) -> np.ndarray:
-        """The estimator's pose covariance (6x6: mm^2 for the position, rad^2 for the body rotation) for a
-        part estimated at ``t`` (3,) mm in the camera: ``est_pos_std_mm`` along the line of sight through
-        ``t``, ``est_lateral_std_mm`` across it (a monocular pose pins the image position far better than
-        the depth), ``est_rot_std_deg`` about each axis."""
-        cov = self._est_cov.copy()
-        n = float(np.linalg.norm(t))
-        if n > 0 and np.isfinite(n):
-            u = np.asarray(t, np.float64) / n
-            lat, depth = self.cfg.est_lateral_std_mm**2, self.cfg.est_pos_std_mm**2
-            cov[:3, :3] = lat * np.eye(3) + (depth - lat) * np.outer(u, u)
-        return cov
 
     def _moved(self, res, prior: tuple[np.ndarray, np.ndarray]) -> bool:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
@@ -666,7 +667,7 @@ class Tracker:
 
         def est_cov_of(tr: _Track, res) -> np.ndarray:
             k = share[id(tr.kf.shared)] if isinstance(tr.kf, PartFilter) else 0
-            cov = self.est_cov_at(res.t)
+            cov = estimator_cov(res.t, cfg)
             return cov * k if k > 1 else cov
 
         # an instrument none of whose parts is tracked starts its state from all of them at once (the
