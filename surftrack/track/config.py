@@ -33,9 +33,10 @@ class TrackConfig:
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
     row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
     part whose projected box keeps less than this fraction inside the image is lost, unless a detection
-    agrees with it (IoU >= ``min_iou``: a long shaft keeps a small share of its box in view). ``max_occluded``:
-    frames a tracked part the estimator does not see keeps its predicted pose while another part of its
-    instrument is measured (hidden behind the other tool; the smoother bridges the gap when it is back).
+    agrees with it (IoU >= ``min_iou``: a long shaft keeps a small share of its box in view).
+    ``max_occluded``: frames a tracked part the estimator does not see keeps its predicted pose while
+    another part of its instrument is measured (hidden behind the other tool; the smoother bridges the
+    gap when it is back).
 
     ``flow``: measure parts between keyframes by model-based optical flow (off: the filter carries them and
     the smoother interpolates between keyframes; LK follows highlights and edges on textureless metal:
@@ -48,7 +49,8 @@ class TrackConfig:
     3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
     independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` along the line of sight,
-    ``est_lateral_std_mm`` across it and ``est_rot_std_deg``; an initialisation needs ``init_min_inliers`` and a score >= ``init_min_score``.
+    ``est_lateral_std_mm`` across it and ``est_rot_std_deg``; an initialisation needs
+    ``init_min_inliers`` and a score >= ``init_min_score``.
 
     ``region``: measure parts between keyframes by their silhouettes (:mod:`surftrack.track.region`:
     colour statistics along lines normal to the rendered outline, one fit per instrument through its
@@ -190,8 +192,8 @@ class TrackConfig:
             raise ValueError("trocar needs articulated: true (it constrains an instrument's state)")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
-        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg", "confidence_add",
-                     "confidence_scale", "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg",
+        for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg",
+                     "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg",
                      "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -611,7 +611,7 @@ class Tracker:
                 det = self._pick_box(tr, boxes.get(sid, ()), pbox)
                 # a long part (the shaft) keeps a small share of its box in view while it still fills
                 # the image's edge: a detection that agrees with the part where the track puts it says
-                # it is still there (dropping it restarted the shaft on every such frame, no smoothing)
+                # it is still there (dropping it would restart its filter on every such frame)
                 seen = det is not None and pbox is not None and box_iou(det, pbox) >= cfg.min_iou
                 if pbox is None or (inside < cfg.min_visible and not seen):
                     tr.drop()
