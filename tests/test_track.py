@@ -301,7 +301,8 @@ def test_the_estimators_position_noise_is_wide_along_the_line_of_sight():
     assert abs(abs(v[:, 2] @ u) - 1.0) < 1e-9
     np.testing.assert_allclose(cov[3:, 3:], np.eye(3) * np.radians(5.0) ** 2)
     assert not cov[:3, 3:].any()
-    np.testing.assert_allclose(estimator_cov(t, TrackConfig(est_lateral_std_mm=3.0))[:3, :3], 9.0 * np.eye(3), atol=1e-12)
+    isotropic = estimator_cov(t, TrackConfig(est_lateral_std_mm=3.0))
+    np.testing.assert_allclose(isotropic[:3, :3], 9.0 * np.eye(3), atol=1e-12)
 
 
 def test_box_helpers():

@@ -193,8 +193,8 @@ class TrackConfig:
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg",
-                     "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm", "region_max_std_deg",
-                     "joint_accel_std_rad_s2"):
+                     "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm",
+                     "region_max_std_deg", "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm"):
