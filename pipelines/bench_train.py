@@ -1,9 +1,14 @@
 """Training throughput: images/s of real training steps (data loading, target rendering, forward,
-losses, backward, Adam) and of the network alone on random tensors.
+losses, backward, Adam), of the network alone on random tensors and of the data loader alone, so that
+the slower of the two halves shows.
 
     python pipelines/bench_train.py [--config lite] [--data DIR] [--steps 20] [--device cpu|cuda]
+                                    [--workers N]
 
-Without --data it first generates a small dataset (24 images, LND) into a temporary folder.
+Without --data it first generates a small dataset (24 images, LND) into a temporary folder; give a
+dataset of a few hundred images or more with many workers, else the loader's start-up dominates. The
+training step is reported over the whole run and after its first logged steps (the workers' start-up,
+which spawns them, loads the dataset and makes a GL context in each, left out).
 """
 
 from __future__ import annotations
@@ -52,6 +57,37 @@ def network_only(cfg, device: torch.device, steps: int) -> float:
     return steps * B / (time.perf_counter() - t0)
 
 
+def loader_only(cfg, data: Path, batches: int) -> tuple[float, float]:
+    """(start-up s, images/s after the first batch) of the training data loader alone: the crops, targets
+    and augmentation :func:`~surftrack.model.train.train` feeds the network, with its workers."""
+    from surftrack.data import BopDataset, CropDataset
+    from surftrack.model.train import _loader
+
+    bop = BopDataset(data, min_visib_fract=cfg.data.min_visib_fract)
+    ds = CropDataset(bop, crop_size=cfg.data.crop, scale=cfg.data.scale, jitter=cfg.data.jitter,
+                     max_rotation_deg=cfg.data.max_rotation_deg, augment=cfg.data.augment, mask_mode=cfg.data.mask_mode,
+                     seed=cfg.run.seed)
+    t0 = time.perf_counter()
+    n, t1 = 0, None
+    for i, b in enumerate(_loader(ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed, True)):
+        if t1 is None:
+            t1 = time.perf_counter()
+        else:
+            n += b["image"].shape[0]
+        if i == batches:
+            break
+    return t1 - t0, n / max(time.perf_counter() - t1, 1e-9)
+
+
+def steady_rate(rows: list[dict], batch: int) -> float | None:
+    """Images/s between the first and the last logged training rows (their images/s are cumulative)."""
+    tr = [r for r in rows if r["kind"] == "train"]
+    if len(tr) < 2:
+        return None
+    t = [r["step"] * batch / r["images_per_s"] for r in (tr[0], tr[-1])]
+    return (tr[-1]["step"] - tr[0]["step"]) * batch / max(t[1] - t[0], 1e-9)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default="lite")
@@ -63,7 +99,8 @@ def main() -> None:
     cfg = load_train_config(args.config)
     if args.workers is not None:
         cfg = cfg.replace(run={"workers": args.workers})
-    cfg = cfg.replace(run={"val_every": 10**9, "ckpt_every": 10**9, "log_every": 5})
+    # no validation images: validation runs the pose solver on the CPU, which is not what is timed here
+    cfg = cfg.replace(run={"val_every": 10**9, "val_images": 0, "ckpt_every": 10**9, "log_every": 5})
     device = torch.device(args.device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {os.cpu_count()} cores"
     print(f"config {args.config}: crop {cfg.data.crop}, batch {cfg.optim.batch}, decoders "
@@ -77,12 +114,14 @@ def main() -> None:
 
             data = Path(tmp) / "data"
             generate_dataset(data, load_synth_config(), 24, seed=0, workers=1, progress=False)
+        start, rate = loader_only(cfg, Path(data), max(5, args.steps // 2))
+        print(f"data loader alone ({cfg.run.workers} workers): {rate:.1f} images/s after a {start:.1f} s start")
         out = Path(tmp) / "bench.pt"
         s = train(cfg.replace(optim={"steps": args.steps}), data, out, device=args.device, progress=False)
         rows = [json.loads(line) for line in (Path(tmp) / "bench.metrics.jsonl").read_text().splitlines()]
-        rates = [r["images_per_s"] for r in rows if r["kind"] == "train"]
-    print(f"full training step: {s['images_per_s']:.1f} images/s over {s['steps']} steps "
-          f"(last logged {rates[-1]:.1f} images/s)")
+        steady = steady_rate(rows, cfg.optim.batch)
+    print(f"full training step: {s['images_per_s']:.1f} images/s over {s['steps']} steps"
+          + (f", {steady:.1f} after the first {cfg.run.log_every}" if steady else ""))
 
 
 if __name__ == "__main__":

@@ -249,3 +249,15 @@ def test_validation_holds_out_whole_tissue_groups(tiny_data):
     # fewer than 10 groups: single images
     _, val_idx = _split_instances(bop, 24, seed=0, group_size=50)
     assert len({(bop.instances[i].scene_id, bop.instances[i].im_id) for i in val_idx}) == 24
+
+
+def test_spawned_loader_workers_give_the_in_process_batches(tiny_data):
+    """The training loader's spawned workers (their own GL context, OpenCV on one thread) produce exactly
+    the crops and rendered targets of the in-process loader: items depend on (seed, epoch, index) only."""
+    from surftrack.data import BopDataset, CropDataset
+    from surftrack.model.train import _loader
+
+    ds = CropDataset(BopDataset(tiny_data, min_visib_fract=0.1), crop_size=64, jitter=0.1, seed=5)
+    first = [next(iter(_loader(ds, 4, w, 0, True))) for w in (0, 1)]
+    for key in ("image", "coord_norm", "mask_amodal", "index"):
+        assert torch.equal(first[0][key], first[1][key]), key

@@ -254,7 +254,14 @@ def _split_instances(bop, val_images: int, seed: int, group_size: int = 1) -> tu
     return train_idx, val_idx
 
 
-def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1, sampler=None):
+def _init_loader_worker(_worker_id: int) -> None:
+    # One worker per core already: OpenCV's own thread pool in each of them (torch's is set to one thread
+    # by the DataLoader) would oversubscribe the machine N-fold.
+    cv2.setNumThreads(1)
+
+
+def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1, sampler=None,
+            pin_memory: bool = False):
     from surftrack.render import worker_context
 
     if sampler is None and world > 1:
@@ -264,7 +271,8 @@ def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 
     # that each epoch's CropDataset.set_epoch reaches them.
     return torch.utils.data.DataLoader(
         ds, batch_size=batch, shuffle=shuffle and sampler is None, sampler=sampler, drop_last=shuffle,
-        num_workers=workers, generator=g, persistent_workers=False,
+        num_workers=workers, generator=g, persistent_workers=False, pin_memory=pin_memory,
+        worker_init_fn=_init_loader_worker if workers > 0 else None,
         multiprocessing_context=worker_context() if workers > 0 else None)
 
 
@@ -377,7 +385,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         module = torch.nn.parallel.DistributedDataParallel(
             trainer.forward, device_ids=[dev.index] if dev.type == "cuda" else None, find_unused_parameters=True)
 
-    loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world, sampler)
+    loader = _loader(train_ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed + start, True, rank, world, sampler,
+                     pin_memory=dev.type == "cuda")
     val_loader = _loader(val_ds, cfg.optim.batch, 0, cfg.run.seed, False) if val_ds is not None else None
 
     def log(row: dict) -> None:
