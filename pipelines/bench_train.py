@@ -57,16 +57,51 @@ def network_only(cfg, device: torch.device, steps: int) -> float:
     return steps * B / (time.perf_counter() - t0)
 
 
+def crop_dataset(cfg, data: Path):
+    """The training crops of ``data`` as :func:`~surftrack.model.train.train` makes them."""
+    from surftrack.data import BopDataset, CropDataset
+
+    bop = BopDataset(data, min_visib_fract=cfg.data.min_visib_fract)
+    return CropDataset(bop, crop_size=cfg.data.crop, scale=cfg.data.scale, jitter=cfg.data.jitter,
+                       max_rotation_deg=cfg.data.max_rotation_deg, augment=cfg.data.augment,
+                       mask_mode=cfg.data.mask_mode, seed=cfg.run.seed)
+
+
+#: The stages of one training crop, by the function that does each (cumulative profile times).
+ITEM_STAGES = {"read rgb": "load_rgb", "read mask": "load_mask_visib", "render targets": "render",
+               "augment": "augment", "normalise": "normalise_image"}
+
+
+def item_breakdown(cfg, data: Path, n: int) -> tuple[float, dict[str, float]]:
+    """(ms per crop, ms per crop of each of :data:`ITEM_STAGES`) in this process, one core: compared with
+    the loader's rate over its workers, it shows whether the workers slow each other down."""
+    import cProfile
+    import pstats
+
+    ds = crop_dataset(cfg, data)
+    ds[0]  # the GL context and the meshes' upload stay out of the figures
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.enable()
+    for i in range(1, n + 1):
+        ds[i % len(ds)]
+    prof.disable()
+    total = (time.perf_counter() - t0) * 1e3 / n
+    stats = pstats.Stats(prof).stats  # (file, line, name) -> (calls, prim, tottime, cumtime, callers)
+    files = {"render": "targets.py", "augment": "augment.py"}
+    stages = {}
+    for label, fn in ITEM_STAGES.items():
+        cum = [v[3] for (f, _, name), v in stats.items() if name == fn and f.endswith(files.get(fn, ".py"))]
+        stages[label] = (max(cum) if cum else 0.0) * 1e3 / n
+    return total, stages
+
+
 def loader_only(cfg, data: Path, batches: int) -> tuple[float, float]:
     """(start-up s, images/s after the first batch) of the training data loader alone: the crops, targets
     and augmentation :func:`~surftrack.model.train.train` feeds the network, with its workers."""
-    from surftrack.data import BopDataset, CropDataset
     from surftrack.model.train import _loader
 
-    bop = BopDataset(data, min_visib_fract=cfg.data.min_visib_fract)
-    ds = CropDataset(bop, crop_size=cfg.data.crop, scale=cfg.data.scale, jitter=cfg.data.jitter,
-                     max_rotation_deg=cfg.data.max_rotation_deg, augment=cfg.data.augment, mask_mode=cfg.data.mask_mode,
-                     seed=cfg.run.seed)
+    ds = crop_dataset(cfg, data)
     t0 = time.perf_counter()
     n, t1 = 0, None
     for i, b in enumerate(_loader(ds, cfg.optim.batch, cfg.run.workers, cfg.run.seed, True)):
@@ -114,6 +149,9 @@ def main() -> None:
 
             data = Path(tmp) / "data"
             generate_dataset(data, load_synth_config(), 24, seed=0, workers=1, progress=False)
+        per, stages = item_breakdown(cfg, Path(data), 40)
+        print(f"one crop in this process: {per:.1f} ms (" + ", ".join(f"{k} {v:.1f}" for k, v in stages.items())
+              + f" ms): {1e3 / per:.1f} images/s per worker")
         start, rate = loader_only(cfg, Path(data), max(5, args.steps // 2))
         print(f"data loader alone ({cfg.run.workers} workers): {rate:.1f} images/s after a {start:.1f} s start")
         out = Path(tmp) / "bench.pt"
