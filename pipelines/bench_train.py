@@ -59,12 +59,11 @@ def network_only(cfg, device: torch.device, steps: int) -> float:
 
 def crop_dataset(cfg, data: Path):
     """The training crops of ``data`` as :func:`~surftrack.model.train.train` makes them."""
-    from surftrack.data import BopDataset, CropDataset
+    from surftrack.data import BopDataset
+    from surftrack.model.train import training_crops
 
     bop = BopDataset(data, min_visib_fract=cfg.data.min_visib_fract)
-    return CropDataset(bop, crop_size=cfg.data.crop, scale=cfg.data.scale, jitter=cfg.data.jitter,
-                       max_rotation_deg=cfg.data.max_rotation_deg, augment=cfg.data.augment,
-                       mask_mode=cfg.data.mask_mode, seed=cfg.run.seed)
+    return training_crops(cfg, bop, sorted(bop.models), cfg.run.seed)
 
 
 #: The stages of one training crop, by the function that does each (cumulative profile times).

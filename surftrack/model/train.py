@@ -254,6 +254,19 @@ def _split_instances(bop, val_images: int, seed: int, group_size: int = 1) -> tu
     return train_idx, val_idx
 
 
+def training_crops(cfg: TrainConfig, bop, obj_ids: list[int], seed: int, validation: bool = False):
+    """The :class:`~surftrack.data.CropDataset` of ``bop`` (a BopDataset) that :func:`train` feeds the
+    network: crops of ``cfg.data``, jittered, rotated and augmented; with ``validation``, centred and plain."""
+    from surftrack.data import CropDataset
+
+    common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode,
+                  seed=seed)
+    if validation:
+        return CropDataset(bop, jitter=0.0, augment=None, **common)
+    return CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
+                       augment=cfg.data.augment, **common)
+
+
 def _init_loader_worker(_worker_id: int) -> None:
     # One worker per core already: OpenCV's own thread pool in each of them (torch's is set to one thread
     # by the DataLoader) would oversubscribe the machine N-fold.
@@ -291,7 +304,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     file whose weights initialise the encoder of a new run (as in the paper; nothing is downloaded)."""
     from tqdm import tqdm
 
-    from surftrack.data import BopDataset, CropDataset, MixedSampler, mixed_dataset
+    from surftrack.data import BopDataset, MixedSampler, mixed_dataset
 
     rank, world, dev = _dist(device)
     out = Path(out)
@@ -306,9 +319,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
     names = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
     parts = [PartInfo.from_part(o, names.get(str(o), {}).get("instrument", "unknown"), bop.models[o]) for o in obj_ids]
     train_idx, val_idx = validation_split(bop, data_dir, cfg)
-    common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode)
-    syn_ds = CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
-                         augment=cfg.data.augment, seed=cfg.run.seed, **common)
+    syn_ds = training_crops(cfg, bop, obj_ids, cfg.run.seed)
     epoch_datasets = [syn_ds]
     train_ds = _subset(syn_ds, train_idx)
     sampler = None
@@ -320,14 +331,12 @@ def train(cfg: TrainConfig, data_dir: str | Path, out: str | Path, steps: int | 
         if not real_bop.models or any(o not in bop.models or not bop.models[o].same_geometry(m.mesh.vertices, m.mesh.faces)
                                       for o, m in real_bop.models.items()):
             raise TrainConfigError(f"{cfg.data.real_data}: its models differ from those of {data_dir}")
-        real_ds = CropDataset(real_bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
-                              augment=cfg.data.augment, seed=cfg.run.seed + 1, **common)
+        real_ds = training_crops(cfg, real_bop, obj_ids, cfg.run.seed + 1)
         epoch_datasets.append(real_ds)
         sampler = MixedSampler(len(train_ds), len(real_ds), cfg.optim.batch, tuple(cfg.data.syn_real_ratio),
                                seed=cfg.run.seed)
         train_ds = mixed_dataset(train_ds, real_ds)
-    val_ds = _subset(CropDataset(bop, jitter=0.0, augment=None, seed=cfg.run.seed, **common), val_idx) \
-        if val_idx else None
+    val_ds = _subset(training_crops(cfg, bop, obj_ids, cfg.run.seed, validation=True), val_idx) if val_idx else None
 
     start, start_epoch = 0, 0
     if resume and out.is_file():
