@@ -224,6 +224,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise CLIError("--init and --resume exclude each other: --resume continues --out, --init starts afresh")
     if args.init and args.imagenet:
         raise CLIError("--init and --imagenet exclude each other: both set the starting weights")
+    if args.workers is not None:
+        if args.workers < 0:
+            raise CLIError(f"--workers must be 0 or more, got {args.workers}")
+        cfg = cfg.replace(run={"workers": args.workers})
     s = train(cfg, args.data, args.out, steps=args.steps, resume=args.resume, device=args.device,
               progress=not args.quiet, init=args.init, imagenet=args.imagenet)
     if s["rank"] != 0:  # under torchrun, one summary
@@ -503,6 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--imagenet", metavar="PTH", help="initialise the encoder of a new run from a torchvision "
                                                       "resnet18 state-dict file (e.g. resnet18-f37072fd.pth)")
     tr.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    tr.add_argument("--workers", type=int, help="data loader processes, each rendering targets with its own GL "
+                                                "context (default: the config's run.workers; on a GPU, about "
+                                                "one per core: the loader, not the network, limits the step)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
     ev = sub.add_parser("eval", help="evaluate a checkpoint on a BOP split (RE, TE, ADD-10, AUC; paper table, BOP CSV)")

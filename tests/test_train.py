@@ -261,3 +261,18 @@ def test_spawned_loader_workers_give_the_in_process_batches(tiny_data):
     first = [next(iter(_loader(ds, 4, w, 0, True))) for w in (0, 1)]
     for key in ("image", "coord_norm", "mask_amodal", "index"):
         assert torch.equal(first[0][key], first[1][key]), key
+
+
+def test_cli_train_workers(tiny_data, tmp_path):
+    """`surftrack train --workers N` overrides the config's loader processes (checked; one spawned worker
+    trains here), so a GPU user sets them without copying the config."""
+    import yaml
+
+    from surftrack.cli import main
+
+    cfg = {**TINY, "optim": {**TINY["optim"], "steps": 2}, "run": {**TINY["run"], "val_every": 100}}
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    args = ["train", "--config", str(tmp_path / "tiny.yaml"), "--data", str(tiny_data), "--quiet", "--device", "cpu"]
+    assert main(args + ["--out", str(tmp_path / "w.pt"), "--workers", "-1"]) == 2
+    assert main(args + ["--out", str(tmp_path / "w.pt"), "--workers", "1"]) == 0
+    assert load_checkpoint(tmp_path / "w.pt")[2]["step"] == 2
