@@ -32,7 +32,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import torch
 
 
@@ -46,45 +45,6 @@ def _filtered_boxes(clip: Path, parts: list[str], out: Path) -> Path:
         f["detections"] = [d for d in f["detections"] if str(d["part_id"]) in keep]
     write_detections(out, doc)
     return out
-
-
-def _per_frame(clip: Path, boxes: Path, model, tcfg, cfg, device: str):
-    """Per-frame estimation (no temporal model) with the best box of each part: (summary, frames/s)."""
-    from surftrack.annotate import match_parts
-    from surftrack.io.video import read_video_frames
-    from surftrack.pose import PoseEstimator
-    from surftrack.pose.kinematic import apply_kinematics
-    from surftrack.track import PartState
-    from surftrack.instruments import load_instrument
-    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
-
-    est = PoseEstimator(model, cfg.estimator_preset(), device=device, crop_size=tcfg.data.crop,
-                        box_scale=tcfg.data.scale)
-    K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
-    det = json.loads(boxes.read_text())
-    per_frame = {f["index"]: f["detections"] for f in det["frames"]}
-    specs = {s.track_id: s for s in match_parts(det, model, str(boxes))[0]}
-    kin = cfg.kinematic_config()
-    lnd = load_instrument("lnd")
-    score = TrackScore(ClipGroundTruth(clip / "gt.json"), instruments={lnd.name: lnd})
-    t0, n = time.perf_counter(), 0
-    for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
-        best = {}
-        for d in per_frame.get(index, []):
-            if d["score"] >= cfg.min_box_score and (d["part_id"] not in best or d["score"] > best[d["part_id"]][1]):
-                best[d["part_id"]] = (tuple(d["bbox"]), d["score"])
-        pids = sorted(best)
-        res = est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K) if pids else []
-        if kin is not None:
-            res = apply_kinematics(res, [specs[p].instance for p in pids], model.parts, kin)
-        got = {p: r for p, r in zip(pids, res) if r.ok}
-        states = [PartState(s, "keyframe" if p in got else "lost",
-                            float(1.0 - np.exp(-max(got[p].score, 0.0))) if p in got else 0.0,
-                            got[p].R if p in got else None, got[p].t if p in got else None, None)
-                  for p, s in specs.items()]
-        score.add_frame(index, t_s, states)
-        n += 1
-    return (score.summary(), score.tip_summary()), n / (time.perf_counter() - t0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    from surftrack.annotate import AnnotateOptions, annotate_video
+    from surftrack.annotate import AnnotateOptions, annotate_video, score_per_frame
     from surftrack.instruments import load_instrument
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
@@ -195,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         for part, v in sorted(flow_ms.items()):
             print(f"tracked-frame cost (LK + PnP + KF), {part}: median {statistics.median(v):.2f} ms over {len(v)} frames")
         if not args.no_per_frame:
-            est_summary, est_fps = _per_frame(clip, boxes, model, tcfg, cfg, args.device)
+            *est_summary, est_fps = score_per_frame(clip, boxes, model, tcfg, cfg, args.device)
             print(f"per-frame estimation (decode, estimator{', kinematic fit' if cfg.kinematic else ''}): "
                   f"{est_fps:.2f} frames/s -> smoothed tracking {fps_smoothed / est_fps:.1f}x faster")
             print("\nper-frame estimation:\n" + format_summary(est_summary[0]), end="")

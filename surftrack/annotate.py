@@ -17,6 +17,7 @@ the smoother are written, and what was written stays valid.
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -376,3 +377,81 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             "parts": {name: {"frames": dict(c), "mean_confidence": conf_sum[name] / n_done}
                       for name, c in counts.items()},
             "outputs": outputs}
+
+
+def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: TrackConfig, device: str | None = None,
+                    instruments: InstrumentRegistry = BUILTIN) -> tuple[dict, dict, float]:
+    """Per-frame estimation (no temporal model) of a synthetic clip (``surftrack synth-clip``: video.mp4,
+    camera.json, gt.json) scored against its ground truth: every frame, each part the model knows from its
+    best box in ``boxes`` with ``cfg``'s estimator preset and solver seed, then ``cfg``'s instrument fit.
+    ``model`` and ``train_cfg``: a loaded checkpoint. Returns (per-part summary, tool-tip summary, frames/s),
+    as :class:`~surftrack.track.clip_eval.TrackScore` reports them."""
+    from surftrack.pose import PoseEstimator
+    from surftrack.pose.kinematic import apply_kinematics
+    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
+
+    clip, boxes = Path(clip), Path(boxes)
+    est = PoseEstimator(model, cfg.estimator_preset(), device=device, crop_size=train_cfg.data.crop,
+                        box_scale=train_cfg.data.scale)
+    K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
+    det = json.loads(boxes.read_text())
+    per_frame = {f["index"]: f["detections"] for f in det["frames"]}
+    specs = {s.track_id: s for s in match_parts(det, model, str(boxes), instruments)[0]}
+    kin = cfg.kinematic_config()
+    tools = {}
+    for s in specs.values():
+        with contextlib.suppress(Exception):  # the tip summary needs the instrument's YAML; a part does not
+            tools.setdefault(s.instrument, instruments.load(s.instrument))
+    score = TrackScore(ClipGroundTruth(clip / "gt.json"), instruments=tools)
+    t0, n = time.perf_counter(), 0
+    for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
+        best: dict[int, tuple] = {}
+        for d in per_frame.get(index, []):
+            if d["part_id"] in specs and d["score"] >= cfg.min_box_score and (
+                    d["part_id"] not in best or d["score"] > best[d["part_id"]][1]):
+                best[d["part_id"]] = (tuple(d["bbox"]), d["score"])
+        pids = sorted(best)
+        res = est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K) if pids else []
+        if kin is not None:
+            res = apply_kinematics(res, [specs[p].instance for p in pids], model.parts, kin)
+        got = {p: r for p, r in zip(pids, res) if r.ok}
+        states = [PartState(s, "keyframe" if p in got else "lost",
+                            float(1.0 - np.exp(-max(got[p].score, 0.0))) if p in got else 0.0,
+                            got[p].R if p in got else None, got[p].t if p in got else None, None)
+                  for p, s in specs.items()]
+        score.add_frame(index, t_s, states)
+        n += 1
+    return score.summary(), score.tip_summary(), n / max(time.perf_counter() - t0, 1e-9)
+
+
+def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, Path], seeds: list[int],
+                   preset: str = "fast", views: int = 0, kinematic: bool = True, device: str | None = None,
+                   instruments: InstrumentRegistry = BUILTIN, progress: bool = False) -> dict[str, dict]:
+    """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed:
+    name -> {"frames": n, "parts": {part: ADD-10 % mean over seeds}, "per_seed": [ADD-10 % over all
+    part-frames, per seed]}, what :func:`surftrack.pose.suite.clip_table` prints. A part's column is its
+    name, or ``instrument.instance.part`` where several instruments are scored."""
+    from surftrack.model.checkpoint import load_checkpoint
+
+    model, train_cfg, _ = load_checkpoint(checkpoint, device or "cpu")
+    base = TrackConfig(preset=preset, views=views, kinematic=kinematic)
+    table = {}
+    for name in names:
+        folder = Path(folders[name])
+        runs = []
+        for seed in seeds:
+            summary = score_per_frame(folder, folder / "det.json", model, train_cfg, base.replace(solver_seed=seed),
+                                      device, instruments)[0]
+            runs.append(summary)
+            if progress:
+                print(f"clip {name}, solver seed {seed}: ADD-10 " + ", ".join(
+                    f"{k} {v['add10_pct']:.1f}" for k, v in summary.items()) + " %")
+        parts = list(runs[0])
+        label = {n: n.rsplit(".", 1)[-1] if len({m.rsplit(".", 1)[0] for m in parts}) == 1 else n for n in parts}
+        table[name] = {
+            "frames": len(json.loads((folder / "gt.json").read_text())["frames"]),
+            "parts": {label[n]: float(np.mean([r[n]["add10_pct"] for r in runs])) for n in parts},
+            # pooled over part-frames: each part weighs by its visible frames
+            "per_seed": [100.0 * sum(r[n]["add10_pct"] / 100.0 * r[n]["visible_frames"] for n in parts)
+                         / max(sum(r[n]["visible_frames"] for n in parts), 1) for r in runs]}
+    return table

@@ -306,12 +306,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _eval_suite(args: argparse.Namespace) -> int:
     """``eval --suite``: make the suite's sets where missing, evaluate each, print and write one table."""
     from surftrack.pose.preset import get_preset
-    from surftrack.pose.suite import evaluate_suite, load_suite, make_suite, suite_table
+    from surftrack.pose.suite import evaluate_suite, load_suite, load_suite_clips, make_suite, suite_table
 
     seeds = args.seed or [0, 1, 2]
     if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
         raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, seeds))}")
     sets = load_suite(None if args.suite == "default" else args.suite)
+    clips = load_suite_clips(None if args.suite == "default" else args.suite)  # checked before any work
     registry = _registry(args)
     folders = make_suite(sets, args.suite_dir, workers=2, progress=not args.quiet, instruments=registry)
     preset = get_preset(args.preset)
@@ -320,6 +321,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
     table = evaluate_suite(args.model, sets, folders, seeds, preset=preset, device=args.device,
                            kinematic=args.kinematic, instruments=registry, progress=not args.quiet)
     text = suite_table(table, sets)
+    if clips:
+        text += "\n" + _suite_clips_table(args, clips, seeds, registry)
     out = Path(args.out).with_suffix(".suite.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(f"Model {args.model}, preset {preset.name}{', kinematic fit' if args.kinematic else ''}, "
@@ -327,6 +330,20 @@ def _eval_suite(args: argparse.Namespace) -> int:
     print(text, end="")
     print(f"wrote {out}")
     return 0
+
+
+def _suite_clips_table(args: argparse.Namespace, clips, seeds: list[int], registry) -> str:
+    """Per-frame estimation on the suite's tracking clips (made in --suite-dir on first use), each solver
+    seed in ``seeds``, with --preset, --views and --kinematic as for the sets: the clips' table."""
+    from surftrack.annotate import evaluate_clips
+    from surftrack.pose.suite import clip_table, make_suite_clips
+
+    folders = make_suite_clips(clips, args.suite_dir, instruments=registry)
+    views = _checked_views(args.views) if args.views is not None else 0
+    table = evaluate_clips(args.model, [c.name for c in clips], folders, seeds, preset=args.preset, views=views,
+                           kinematic=bool(args.kinematic), device=args.device, instruments=registry,
+                           progress=not args.quiet)
+    return clip_table(table, clips)
 
 
 def _track_config(args: argparse.Namespace) -> TrackConfig:
@@ -516,8 +533,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--model", required=True, help="checkpoint file (from `surftrack train`)")
     ev.add_argument("--data", help="BOP dataset folder")
     ev.add_argument("--suite", nargs="?", const="default", metavar="YAML",
-                    help="evaluate on the fixed held-out suite instead (default configs/eval/suite.yaml): its sets are "
-                         "made in --suite-dir on first use; one table per part and set, mean of solver seeds 0-2")
+                    help="evaluate on the fixed held-out suite instead (default configs/eval/suite.yaml): its sets and "
+                         "tracking clips are made in --suite-dir on first use; one table per part and set, one "
+                         "per part and clip (per-frame estimation), mean of solver seeds 0-2")
     ev.add_argument("--suite-dir", default="data/suite", help="where the suite's sets live (default: data/suite)")
     ev.add_argument("--split", default="test", help="split folder to evaluate (default: test)")
     ev.add_argument("--by-cause", action="store_true",

@@ -385,3 +385,44 @@ def test_eval_by_cause_bins_every_instance(tiny, tmp_path, capsys):
     text = (tmp_path / "b.causes.md").read_text()
     assert "| depth z (mm) |" in text and "roll" not in text
 
+
+
+def test_the_suite_clips_are_made_once_and_scored_per_frame(tiny_ckpt, tmp_path, capsys):
+    """The suite's tracking clips: made with their seed, length and rate, scored by per-frame estimation
+    (one row per clip, a column per part, mean over solver seeds), reused by a second run, and refused
+    when the folder holds a clip made with other settings."""
+    import json
+
+    from surftrack.cli import main
+    from surftrack.pose.suite import SuiteError, load_suite_clips, make_suite_clips
+
+    small = "{image: {width: 320, height: 256}, tissue: {images_per_tissue: 2, spacing_mm: 4.0, texel_mm: 1.0}, " \
+            "output: {images_per_scene: 2, rgb_format: png}}"
+    (tmp_path / "suite.yaml").write_text(f"""images: 2
+sets:
+  paper: {{config: paper, seed: 13, overrides: {small}}}
+clips:
+  c1: {{seed: 411, seconds: 2.0, fps: 3, about: a short full-range clip}}
+""")
+    clips = load_suite_clips(tmp_path / "suite.yaml")
+    assert [(c.name, c.seed, c.seconds, c.fps) for c in clips] == [("c1", 411, 2.0, 3.0)]
+    args = ["eval", "--suite", str(tmp_path / "suite.yaml"), "--suite-dir", str(tmp_path / "s"),
+            "--model", str(tiny_ckpt), "--preset", "fast", "--seed", "0", "1", "--out", str(tmp_path / "e.json"),
+            "--quiet", "--kinematic"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    row = [line for line in out.splitlines() if line.startswith("| c1 |")]
+    assert len(row) == 1 and row[0].startswith("| c1 | 411 | 6 |") and "| shaft | wrist |" in out
+    assert "c1: a short full-range clip" in (tmp_path / "e.suite.md").read_text()
+    video = tmp_path / "s" / "c1" / "video.mp4"
+    made = video.stat().st_mtime_ns
+    assert make_suite_clips(clips, tmp_path / "s")["c1"] == tmp_path / "s" / "c1"
+    assert video.stat().st_mtime_ns == made
+    stamp = tmp_path / "s" / "c1" / "suite_clip.json"
+    stamp.write_text(json.dumps({**json.loads(stamp.read_text()), "seed": 5}))
+    with pytest.raises(SuiteError, match="other settings"):
+        make_suite_clips(clips, tmp_path / "s")
+    (tmp_path / "bad.yaml").write_text("sets: {a: {seed: 1}}\nclips: {c: {seed: 1, fps: 0}}\n")
+    assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "bad.yaml" in err and "fps" in err

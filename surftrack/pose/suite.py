@@ -5,6 +5,11 @@ The suite file (``configs/eval/suite.yaml``) names each set's synthesis config (
 ``configs/synth``), seed, image count and overrides (merged into the config section by section). The
 sets are made on first use in a folder of their own (resumable; a set made with other settings is
 refused, as ``surftrack synth`` refuses to mix them) and evaluated on their ``train`` split.
+
+Its ``clips`` are tracking clips (``surftrack synth-clip``: the instrument driven over its joint limits,
+a second tool crossing it) with their seed, length and frame rate, made on first use the same way; the
+CLI scores per-frame estimation on them (:func:`surftrack.annotate.score_per_frame`), since tracking
+belongs to a later stage than this module.
 """
 
 from __future__ import annotations
@@ -36,6 +41,15 @@ class SuiteSet:
     about: str = ""
 
 
+@dataclass(frozen=True)
+class SuiteClip:
+    name: str
+    seed: int
+    seconds: float = 10.0
+    fps: float = 15.0
+    about: str = ""
+
+
 def _deep_merge(base: dict, extra: Mapping) -> dict:
     out = dict(base)
     for k, v in extra.items():
@@ -43,8 +57,7 @@ def _deep_merge(base: dict, extra: Mapping) -> dict:
     return out
 
 
-def load_suite(path: str | Path | None = None) -> list[SuiteSet]:
-    """The sets of a suite file (default ``configs/eval/suite.yaml``)."""
+def _read_suite(path: str | Path | None) -> tuple[Path, dict]:
     p = Path(path) if path else configs_dir() / "eval" / "suite.yaml"
     try:
         doc = yaml.safe_load(p.read_text())
@@ -52,9 +65,15 @@ def load_suite(path: str | Path | None = None) -> list[SuiteSet]:
         raise SuiteError(f"{p}: cannot read suite: {yaml_problem(e)}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("sets"), dict) or not doc["sets"]:
         raise SuiteError(f"{p}: a suite needs 'sets': a mapping of set names to {{config, seed, images}}")
-    unknown = set(doc) - {"images", "sets"}
+    unknown = set(doc) - {"images", "sets", "clips"}
     if unknown:
-        raise SuiteError(f"{p}: unknown key(s) {sorted(unknown)} (known: images, sets)")
+        raise SuiteError(f"{p}: unknown key(s) {sorted(unknown)} (known: images, sets, clips)")
+    return p, doc
+
+
+def load_suite(path: str | Path | None = None) -> list[SuiteSet]:
+    """The sets of a suite file (default ``configs/eval/suite.yaml``)."""
+    p, doc = _read_suite(path)
     out = []
     for name, spec in doc["sets"].items():
         spec = dict(spec or {})
@@ -67,6 +86,73 @@ def load_suite(path: str | Path | None = None) -> list[SuiteSet]:
                             int(spec.get("images", doc.get("images", 100))), dict(spec.get("overrides") or {}),
                             str(spec.get("about", ""))))
     return out
+
+
+def load_suite_clips(path: str | Path | None = None) -> list[SuiteClip]:
+    """The tracking clips of a suite file (none when it has no ``clips``)."""
+    p, doc = _read_suite(path)
+    clips = doc.get("clips") or {}
+    if not isinstance(clips, dict):
+        raise SuiteError(f"{p}: 'clips' must map clip names to {{seed, seconds, fps}}")
+    out = []
+    for name, spec in clips.items():
+        spec = dict(spec or {})
+        bad = set(spec) - {"seed", "seconds", "fps", "about"}
+        if bad:
+            raise SuiteError(f"{p}: clip {name!r}: unknown key(s) {sorted(bad)}")
+        if not isinstance(spec.get("seed"), int):
+            raise SuiteError(f"{p}: clip {name!r} needs an integer 'seed'")
+        try:
+            seconds, fps = float(spec.get("seconds", 10.0)), float(spec.get("fps", 15.0))
+        except (TypeError, ValueError):
+            raise SuiteError(f"{p}: clip {name!r}: seconds and fps must be numbers") from None
+        if not (seconds > 0 and fps > 0 and seconds * fps >= 2):
+            raise SuiteError(f"{p}: clip {name!r}: needs seconds > 0, fps > 0 and at least 2 frames")
+        out.append(SuiteClip(str(name), int(spec["seed"]), seconds, fps, str(spec.get("about", ""))))
+    return out
+
+
+def make_suite_clips(clips: Sequence[SuiteClip], root: str | Path, instrument: str = "large_needle_driver",
+                     instruments: InstrumentRegistry = BUILTIN) -> dict[str, Path]:
+    """Make every clip under ``root/<name>`` unless it is there already, made with the same settings (a
+    ``suite_clip.json`` beside it records them; a clip made otherwise is refused); returns name -> folder."""
+    import json
+
+    from surftrack.synth.clip import ClipConfig, make_clip
+
+    out = {}
+    for c in clips:
+        folder = Path(root) / c.name
+        stamp = {"instrument": instrument, "seed": c.seed, "seconds": c.seconds, "fps": c.fps}
+        marker = folder / "suite_clip.json"
+        if marker.is_file():
+            if json.loads(marker.read_text()) != stamp:
+                raise SuiteError(f"{folder}: made with other settings ({marker.read_text().strip()}); "
+                                 f"remove it or use another --suite-dir")
+        else:
+            make_clip(folder, instrument, ClipConfig(seconds=c.seconds, fps=c.fps), seed=c.seed,
+                      instruments=instruments)
+            marker.write_text(json.dumps(stamp) + "\n")  # last: an interrupted clip is made again
+        out[c.name] = folder
+    return out
+
+
+def clip_table(table: Mapping[str, Mapping], clips: Sequence[SuiteClip]) -> str:
+    """Markdown: a row per clip (seed, frames), a column per part (ADD-10 % over the frames it is visible,
+    mean over solver seeds), the part-frames pooled, and the pooled figure's range over the seeds.
+    ``table``: clip name -> {"frames": n, "parts": {part: mean ADD-10 %}, "per_seed": [pooled %]}."""
+    parts = list(dict.fromkeys(p for row in table.values() for p in row["parts"]))
+    head = ["clip", "seed", "frames", *parts, "all parts", "seed range"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in clips:
+        row = table[c.name]
+        cells = [f"{row['parts'][p]:.1f}" if p in row["parts"] else "–" for p in parts]
+        lines.append("| " + " | ".join([c.name, str(c.seed), str(row["frames"]), *cells,
+                                        f"{np.mean(row['per_seed']):.1f}",
+                                        f"{min(row['per_seed']):.1f}-{max(row['per_seed']):.1f}"]) + " |")
+    notes = [f"- {c.name}: {c.about}" for c in clips if c.about]
+    return "\n".join(lines + ["", "Per-frame estimation on tracking clips: ADD-10 (%) over each part's visible "
+                               "frames (SurgRIPE diameter), mean over pose-solver seeds.", *notes]) + "\n"
 
 
 def set_config(s: SuiteSet):
@@ -132,4 +218,5 @@ def suite_table(table: Mapping[str, Mapping], sets: Sequence[SuiteSet]) -> str:
     return "\n".join(lines + ["", "ADD-10 (%) with the SurgRIPE diameter, mean over pose-solver seeds.", *notes]) + "\n"
 
 
-__all__ = ["SuiteError", "SuiteSet", "evaluate_suite", "load_suite", "make_suite", "set_config", "suite_table"]
+__all__ = ["SuiteClip", "SuiteError", "SuiteSet", "clip_table", "evaluate_suite", "load_suite", "load_suite_clips",
+           "make_suite", "make_suite_clips", "set_config", "suite_table"]
