@@ -8,7 +8,7 @@ refused, as ``surftrack synth`` refuses to mix them) and evaluated on their ``tr
 
 Its ``clips`` are tracking clips (``surftrack synth-clip``: the instrument driven over its joint limits,
 a second tool crossing it) with their seed, length and frame rate, made on first use the same way; the
-CLI scores per-frame estimation on them (:func:`surftrack.annotate.score_per_frame`), since tracking
+CLI scores per-frame estimation on them (:func:`surftrack.annotate.evaluate_clips`), since tracking
 belongs to a later stage than this module.
 """
 
