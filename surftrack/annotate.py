@@ -400,7 +400,8 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
     kin = cfg.kinematic_config()
     tools = {}
     for s in specs.values():
-        with contextlib.suppress(Exception):  # the tip summary needs the instrument's YAML; a part does not
+        # an instrument ``instruments`` does not know still scores per part; only its tool tip is left out
+        with contextlib.suppress(Exception):
             tools.setdefault(s.instrument, instruments.load(s.instrument))
     score = TrackScore(ClipGroundTruth(clip / "gt.json"), instruments=tools)
     t0, n = time.perf_counter(), 0

@@ -304,7 +304,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _eval_suite(args: argparse.Namespace) -> int:
-    """``eval --suite``: make the suite's sets where missing, evaluate each, print and write one table."""
+    """``eval --suite``: make the suite's sets and clips where missing, evaluate each, print and write the
+    tables (sets, then clips)."""
     from surftrack.pose.preset import get_preset
     from surftrack.pose.suite import evaluate_suite, load_suite, load_suite_clips, make_suite, suite_table
 
