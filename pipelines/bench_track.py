@@ -128,10 +128,10 @@ def main(argv: list[str] | None = None) -> int:
             causal.add_frame(index, time_s, states)
             for s in states:
                 kinds[s.status] += 1
-                if s.status == "tracking" and "flow_ms" in s.info:
-                    flow_ms.setdefault(s.spec.part, []).append(s.info["flow_ms"])
-                if "estimator" in s.info:
-                    est_calls[s.info["estimator"]] += 1
+                if s.status == "tracking" and s.info.flow_ms is not None:
+                    flow_ms.setdefault(s.spec.part, []).append(s.info.flow_ms)
+                if s.info.estimator is not None:
+                    est_calls[s.info.estimator] += 1
             t0 = time.perf_counter()
             ready = smoother.push((index, time_s, states), filter_steps(states))
             smooth_s += time.perf_counter() - t0

@@ -106,7 +106,7 @@ def test_apply_kinematics_per_instance(lnd):
     out = apply_kinematics(results, groups, _infos(lnd))
     assert len(out) == 8
     for r, o in zip(results, out):  # every part takes its fitted pose, the anchor (wrist) too
-        assert o.counts.get("kinematic") == 1 and o is not r
+        assert o.kinematic and o is not r
     for res, truth in ((out[:4], a), (out[4:], b)):  # each instance fitted to its own parts
         shaft = next(r for r in res if r.part == "shaft")
         assert rotation_angle_deg(shaft.R, truth["shaft"][0]) < 1.0
@@ -116,7 +116,7 @@ def test_apply_kinematics_per_instance(lnd):
     res[0].ok = False
     res[0].R, res[0].t = np.eye(3), np.zeros(3)
     out = apply_kinematics(res, [0] * 4, _infos(lnd))
-    assert out[0] is res[0] and out[2].counts["kinematic"] == 1
+    assert out[0] is res[0] and out[2].kinematic and not out[0].kinematic
     assert np.linalg.norm(out[2].t - a["jaw_left"][1]) < 1.0
     # Without the anchor (the wrist) nothing is fitted: the others would only follow each other.
     no_wrist = [r for r in _part_poses(lnd, _corrupt(a)) if r.part != "wrist"]

@@ -116,12 +116,14 @@ def test_prior_pose_is_kept_only_when_it_scores_best(lnd):
     pb = _rendered(lnd, "wrist", 0, preset)
     true = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0),
                        prior=(pb.R, pb.t))
-    assert true.counts["prior_won"] == 1
+    assert true.prior_won is True
     assert rotation_angle_deg(true.R, pb.R) < 1.0 and np.linalg.norm(true.t - pb.t) < 1.0
     off = Rotation.from_rotvec(np.radians(20) * np.array([0.0, 0.6, 0.8])).as_matrix()
     wrong = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0),
                         prior=(pb.R @ off, pb.t + 5.0))
-    assert wrong.counts["prior_won"] == 0 and rotation_angle_deg(wrong.R, pb.R) < 1.5
+    assert wrong.prior_won is False and rotation_angle_deg(wrong.R, pb.R) < 1.5
+    alone = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0))
+    assert alone.prior_won is None
 
 
 @pytest.fixture(scope="module")

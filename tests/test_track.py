@@ -161,8 +161,8 @@ def test_kinematic_fit_corrects_a_drifted_shaft_track(clip, lnd_parts, tiny_ckpt
     for j in range(i, i + n):
         est.frame = j
         shaft = next(s for s in tracker.step(frames[j], j / 10.0, None) if s.spec.part == "shaft")
-        assert shaft.status == "keyframe" and shaft.info["estimator"] == "cadence"
-        assert shaft.info["kinematic"] == kinematic  # the status says whose pose it is
+        assert shaft.status == "keyframe" and shaft.info.estimator == "cadence"
+        assert shaft.info.kinematic == kinematic  # the status says whose pose it is
         errors.append(pose_distance(shaft.R, shaft.t, *gt.pose(j, lnd_parts["shaft"])[:2])[0])
     if kinematic:
         assert max(errors) < 10.0 and errors[-1] < min(errors[0], 5.0), errors  # the wrong roll was 15 deg
@@ -195,8 +195,8 @@ def test_an_instruments_parts_get_their_keyframes_together(clip, lnd_parts, tiny
         tracker.step(frames[i - 1], (i - 1) / 10.0, None)
         est.frame = i
         states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, None)}
-        assert states["shaft"].info["estimator"] == "cadence"
-        assert states["wrist"].info.get("estimator") == ("instrument keyframe" if kinematic else None)
+        assert states["shaft"].info.estimator == "cadence"
+        assert states["wrist"].info.estimator == ("instrument keyframe" if kinematic else None)
         assert states["wrist"].status == ("keyframe" if kinematic else "predicted")
 
 
@@ -234,14 +234,14 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
         assert states["wrist"].status == "keyframe"
     # the first unseen frame is the retry every tracked part gets, then 3 held frames, then lost
     assert [s.status for s in jaw] == ["predicted"] * 4 + ["lost"], [s.status for s in jaw]
-    assert [s.info.get("occluded") for s in jaw[:4]] == [None, 1, 2, 3] and jaw[4].info["why_lost"]
+    assert [s.info.occluded for s in jaw[:4]] == [None, 1, 2, 3] and jaw[4].info.why_lost
     for k, s in enumerate(jaw[:4]):  # carried from the last measured pose (velocity 0 after set_pose)
         moved = pose_distance(*gt.pose(i - 1, lnd_parts["jaw_left"])[:2], *gt.pose(i + k, lnd_parts["jaw_left"])[:2])[1]
         assert pose_distance(s.R, s.t, *gt.pose(i + k, lnd_parts["jaw_left"])[:2])[1] < moved + 0.5
     hidden.update(p.name for p in model.parts)  # nothing of the instrument is seen: no reason to hold a part
     est.frame = i + n
     states = tracker.step(frames[i + n - 1], (i + n) / 10.0, None)
-    assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.get("occluded") for s in states)
+    assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.occluded for s in states)
 
 
 def test_a_shaft_filling_the_image_edge_is_kept_while_its_detection_agrees(clip, lnd_parts, tiny_ckpt):
@@ -267,9 +267,9 @@ def test_a_shaft_filling_the_image_edge_is_kept_while_its_detection_agrees(clip,
         (state,) = tracker.step(frames[i], i / 10.0, {sid: [(box, 1.0)]} if detected else None)
         if detected:
             # carried by its filter from the pose set on the frame before (no reappearance keyframe)
-            assert state.status != "lost" and "estimator" not in state.info, state.info
+            assert state.status != "lost" and state.info.estimator is None, state.info
         else:
-            assert state.status == "lost" and state.info["why_lost"] == "left the image"
+            assert state.status == "lost" and state.info.why_lost == "left the image"
 
 
 def test_misspelt_kinematic_anchor_is_rejected(tiny_ckpt):
@@ -574,11 +574,15 @@ def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(cl
     tracker.step(frames[i - 1], (i - 1) / 10.0, None)  # the seeded pose stands; points lifted from it
     est.frame = i
     state = tracker.step(frames[i], i / 10.0, None)[0]
-    assert state.status == "tracking" and state.info.get("inliers", 0) >= 6, "a flow measurement"
+    assert state.status == "tracking" and (state.info.inliers or 0) >= 6, "a flow measurement"
     est.frame = i + 1
     state = tracker.step(frames[i + 1], (i + 1) / 10.0, None)[0]
-    assert state.status == "keyframe" and state.info["estimator"] == "cadence" and "inliers" not in state.info
-    assert state.info["d2"] <= TrackConfig().kalman.gate_chi2, "the keyframe passed the gate"
+    assert state.status == "keyframe" and state.info.estimator == "cadence" and state.info.inliers is None
+    assert state.info.d2 <= TrackConfig().kalman.gate_chi2, "the keyframe passed the gate"
+    # a step returns the confidence a causal run writes: the covariance's, through the running NIS
+    from surftrack.track.tracker import confidence
+    cfg = tracker.cfg
+    assert state.confidence == confidence(state.filter_step.P[:3, :3], state.info.nis, 0.0, spec.diameter, cfg) > 0
     te = pose_distance(state.R, state.t, *gt.pose(i + 1, tid)[:2])[1]
     assert te < 3.0, te
 
@@ -673,7 +677,7 @@ def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(ln
     that the position error is within 0.1 diameter (checked by sampling), and falls when the track's
     measurements disagree with it (NIS > 1) or when smoothing moved the pose."""
     from surftrack.instruments import load_instrument
-    from surftrack.track import PartState, PoseKalman
+    from surftrack.track import Diagnostics, PartState, PoseKalman
     from surftrack.track.tracker import confidence
 
     lnd = load_instrument("lnd")
@@ -685,7 +689,7 @@ def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(ln
     confs = []
     for k in range(1, 8):  # no measurements: the covariance grows, the confidence falls (ms steps: ~1 -> ~0.5)
         kf.predict(k / 1000.0)
-        state = PartState(spec, "predicted", 1.0, *kf.pose, None, {}).settled(kf.snapshot(), cfg)
+        state = PartState(spec, "predicted", 1.0, *kf.pose, None).settled(kf.snapshot(), cfg)
         confs.append(state.confidence)
     assert all(b < a for a, b in zip(confs, confs[1:])) and 0.3 < confs[-1] < 0.7 < confs[0] < 1.0
     # the probability of ADD-10, by sampling the inflated Gaussian
@@ -694,11 +698,11 @@ def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(ln
     inside = np.mean(np.linalg.norm(e, axis=1) <= 0.1 * spec.diameter)
     # exact for an isotropic covariance; this one is nearly so (the trace's share per axis)
     assert confs[-1] == pytest.approx(inside, abs=0.03)
-    worse = PartState(spec, "predicted", 1.0, *kf.pose, None, {"nis": 4.0}).settled(kf.snapshot(), cfg)
+    worse = PartState(spec, "predicted", 1.0, *kf.pose, None, Diagnostics(nis=4.0)).settled(kf.snapshot(), cfg)
     assert worse.confidence == pytest.approx(confidence(P, 4.0, 0.0, spec.diameter, cfg)) and worse.confidence < confs[-1]
     # smoothing moved the pose 2 mm from the filter's: that disagreement counts too
     R, t = kf.pose
-    moved = PartState(spec, "predicted", 1.0, R, t + np.array([2.0, 0.0, 0.0]), None, {}).settled(kf.snapshot(), cfg)
+    moved = PartState(spec, "predicted", 1.0, R, t + np.array([2.0, 0.0, 0.0]), None).settled(kf.snapshot(), cfg)
     assert moved.confidence < confs[-1]
     assert confidence(np.zeros((3, 3)), 1.0, 0.0, spec.diameter, cfg) == 1.0
     # a covariance far from round (depth the least certain): still the probability
@@ -721,12 +725,12 @@ def test_running_nis_follows_the_measurements_and_starts_afresh(lnd_parts):
     spec = PartSpec(lnd_parts["wrist"], 2, "large_needle_driver", 0, "wrist", mesh.vertices, mesh.faces)
     tr = _Track(spec, TrackConfig())
     tr.note_d2(12.0, 6, 0.5)
-    assert tr.nis == pytest.approx(0.5 * 1.0 + 0.5 * 2.0) and tr.info["d2"] == 12.0
+    assert tr.nis == pytest.approx(0.5 * 1.0 + 0.5 * 2.0) and tr.info.d2 == 12.0
     tr.note_d2(float("nan"), 6, 0.5)
     tr.note_d2(None, 6, 0.5)
     assert tr.nis == pytest.approx(1.5)
     tr.note_d2(1e9, 2, 0.5, accepted=False)
-    assert tr.nis == pytest.approx(0.5 * 1.5 + 0.5 * 100.0) and tr.info["rejected_d2"] == 1e9
+    assert tr.nis == pytest.approx(0.5 * 1.5 + 0.5 * 100.0) and tr.info.rejected_d2 == 1e9
     tr.drop()
     assert tr.nis == 1.0
 

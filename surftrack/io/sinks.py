@@ -86,7 +86,7 @@ class McapSink:
         w = self.writer
         posed = {s.spec.name: (s.R, s.t) for s in states if s.R is not None}
         for s in states:
-            w.status(time_s, s.spec.name, s.status, s.confidence, {**s.info, **uncertainty(s)})
+            w.status(time_s, s.spec.name, s.status, s.confidence, {**s.info.as_dict(), **uncertainty(s)})
         if posed:
             w.poses(time_s, posed)
         now = set(posed)

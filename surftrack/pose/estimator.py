@@ -50,7 +50,9 @@ class PartPose:
     cached), ``total`` their sum. ``crop_box`` (x0, y0, x1, y1) pixel edges and ``crop_K`` the
     crop's intrinsics (of the unshifted view when the preset has several). With several views, ``timings``
     add up all views, ``score`` and ``n_inliers`` are the merged views' means, and ``counts`` are the
-    reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged)."""
+    reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged). ``prior_won``:
+    the prior handed in scored best (the reference view's; None without a prior); ``kinematic``: the
+    pose is the instrument fit's (:func:`surftrack.pose.kinematic.apply_kinematics`), not this crop's own."""
 
     obj_id: int
     part: str
@@ -65,6 +67,8 @@ class PartPose:
     crop_K: np.ndarray
     image_index: int = 0
     counts: dict[str, int] = field(default_factory=dict)
+    prior_won: bool | None = None
+    kinematic: bool = False
 
     @property
     def pose(self) -> np.ndarray:
@@ -288,7 +292,7 @@ class PoseEstimator:
         counts["views_merged"] = len(members)
         return dataclasses.replace(views[0], R=R, t=t, score=score, ok=True, timings=timings,
                                    n_inliers=int(round(np.mean([ok[m].n_inliers for m in members]))),
-                                   counts={**ok[ref].counts, **counts})
+                                   counts={**ok[ref].counts, **counts}, prior_won=ok[ref].prior_won)
 
     def _forward(self, crops: list[_Crop]) -> tuple[torch.Tensor, torch.Tensor, float]:
         """Pooled mask logits (B, g, g) and queries (B, E, g, g), and the forward ms per crop."""
@@ -329,4 +333,4 @@ class PoseEstimator:
         info = self.model.parts[c.part_index]
         ok = sol.ok and bool(np.isfinite(sol.R).all() and np.isfinite(sol.t).all())
         return PartPose(c.obj_id, info.name, info.instrument, sol.R, sol.t, sol.score, sol.n_inliers, ok, ms,
-                        c.crop_box, c.K_crop, c.image_index, sol.counts)
+                        c.crop_box, c.K_crop, c.image_index, sol.counts, sol.prior_won)

@@ -171,7 +171,7 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
     drops such a part rather than trust it). Every part of a fitted group takes its fitted pose, the anchor
     too (its depth is fused with the others'). Failed estimates (``ok`` False), groups of one part, groups
     that repeat a part and instruments without a kinematic model are left as they are. Replaced results
-    carry ``counts["kinematic"] = 1``."""
+    carry ``kinematic=True``."""
     if len(groups) != len(results):
         raise ValueError(f"need one group key per result, got {len(groups)} for {len(results)}")
     cfg = config or KinematicConfig()
@@ -198,5 +198,5 @@ def apply_kinematics(results: Sequence, groups: Sequence[Hashable], model_parts:
             if not results[i].ok:
                 continue  # a failed estimate stays a failure
             R, t = fitted[results[i].part]
-            out[i] = dataclasses.replace(results[i], R=R, t=t, counts={**results[i].counts, "kinematic": 1})
+            out[i] = dataclasses.replace(results[i], R=R, t=t, kinematic=True)
     return out

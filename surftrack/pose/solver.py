@@ -47,7 +47,8 @@ class StageTimer:
 @dataclass
 class Solution:
     """Model-to-camera pose (mm) of the crop's camera frame, its score, inlier count and diagnostics.
-    ``ok`` is False when no hypothesis could be solved (the pose is then a placeholder on the box ray)."""
+    ``ok`` is False when no hypothesis could be solved (the pose is then a placeholder on the box ray).
+    ``prior_won``: whether the prior handed in scored best of all hypotheses (None without a prior)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -56,6 +57,7 @@ class Solution:
     ok: bool
     counts: dict[str, int] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    prior_won: bool | None = None
 
 
 def _placeholder(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor,
@@ -73,7 +75,7 @@ def solve_field(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor, box_
     """Pose of the part seen in ``field_``. ``K_grid``: grid intrinsics (3, 3); ``box_side``: the
     detection box's longer side in grid pixels; ``generator``: torch generator on the field's device.
     ``prior`` (R, t): a pose from elsewhere (e.g. the tracker's) scored with the hypotheses; it wins, and
-    is then refined, only if it scores best (``counts["prior_won"]``)."""
+    is then refined, only if it scores best (``Solution.prior_won``)."""
     dev = field_.query.device
     timer = timer or StageTimer(dev)
     K = K_grid.to(dev, torch.float64)
@@ -95,8 +97,7 @@ def solve_field(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor, box_
             Rh, th = torch.cat([Rh, Rp]), torch.cat([th, tp])
         scores = score_poses(Rh, th, field_, bank, K, preset)
         best = int(torch.argmax(scores))
-        if prior is not None:
-            counts["prior_won"] = int(best == len(Rh) - 1)
+        prior_won = None if prior is None else best == len(Rh) - 1
         R0, t0, s0 = Rh[best].cpu().numpy(), th[best].cpu().numpy(), float(scores[best])
     with timer("refinement"):
         pts = bank.points[field_.best].double().cpu().numpy()
@@ -110,4 +111,4 @@ def solve_field(field_: CorrField, bank: SurfaceBank, K_grid: torch.Tensor, box_
 
         ref = refine_pose(R0, t0, s0, pts, uv, Kn, bank.radius, preset, score_one)
     counts.update(refine_rounds=ref.rounds_kept, final_pnp=int(ref.final_kept))
-    return Solution(ref.R, ref.t, ref.score, ref.n_inliers, True, counts, dict(timer.ms))
+    return Solution(ref.R, ref.t, ref.score, ref.n_inliers, True, counts, dict(timer.ms), prior_won)

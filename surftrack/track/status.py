@@ -1,7 +1,10 @@
-"""The status of a part on a frame: one vocabulary for the tracker, the overlay, the MCAP and analysis."""
+"""The status of a part on a frame, one vocabulary for the tracker, the overlay, the MCAP and analysis, and
+the diagnostics that come with it."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from enum import Enum
 
 
@@ -35,3 +38,48 @@ class Status(str, Enum):
 POSED = frozenset({Status.KEYFRAME, Status.TRACKING, Status.PREDICTED})
 #: Statuses whose pose was measured this frame (not only carried by the filter).
 MEASURED = frozenset({Status.KEYFRAME, Status.TRACKING})
+
+
+@dataclass
+class Diagnostics:
+    """What the tracker did for one part on one frame; a field is None when it does not apply (the MCAP's
+    status messages carry the set ones, :meth:`as_dict`).
+
+    Estimator (a keyframe): ``estimator`` why it ran (``init``, ``reappearance``, ``cadence``, ``box
+    disagreement``, ``instrument keyframe``, ``gate lockout``, ``no measurement``), ``estimator_ms`` this
+    part's share of the call, ``score`` and ``est_inliers`` its pose's, ``prior_won`` whether the tracked
+    pose beat the estimator's hypotheses, ``kinematic`` whether the pose is the instrument fit's.
+    Filter: ``d2`` the accepted measurement's squared Mahalanobis distance, ``rejected_d2`` that of one
+    the gate kept out, ``nis`` the track's running normalised innovation (1 when its measurements agree
+    with their covariances). Flow: ``points`` followed, ``inliers``, ``inlier_ratio``, ``rms_px`` of its
+    PnP, ``flow_ms``, ``refresh_ms`` (picking new points). Region: ``region_lines`` correspondence lines,
+    ``agreement`` the share of line pixels on the right side of the fitted outline, ``region_ms``.
+    ``source``: ``set_pose`` when the pose was given from outside. ``occluded``: frames held in a row
+    while hidden and the rest of the instrument is seen; ``why_lost``: why the part was dropped.
+    """
+
+    estimator: str | None = None
+    estimator_ms: float | None = None
+    score: float | None = None
+    est_inliers: int | None = None
+    prior_won: bool | None = None
+    kinematic: bool | None = None
+    d2: float | None = None
+    rejected_d2: float | None = None
+    nis: float | None = None
+    points: int | None = None
+    inliers: int | None = None
+    inlier_ratio: float | None = None
+    rms_px: float | None = None
+    flow_ms: float | None = None
+    refresh_ms: float | None = None
+    region_lines: int | None = None
+    agreement: float | None = None
+    region_ms: float | None = None
+    source: str | None = None
+    occluded: int | None = None
+    why_lost: str | None = None
+
+    def as_dict(self) -> dict:
+        """The fields that are set, by name (JSON-ready)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}

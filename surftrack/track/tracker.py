@@ -40,12 +40,28 @@ from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, 
 from surftrack.track.instrument import InstrumentKalman, PartFilter
 from surftrack.track.kalman import FilterStep, PoseKalman
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
-from surftrack.track.status import POSED, Status
+from surftrack.track.status import POSED, Diagnostics, Status
 from surftrack.track.trocar import Trocar
 
 
 # estimator runs the tracker scheduled itself (not asked for by a failing measurement)
 SCHEDULED = ("cadence", "instrument keyframe", "box disagreement")
+# vertices projected for a part's predicted box (a random subset: a CAD mesh's tens of thousands would be
+# projected for every part on every frame, for a box that only gates and crops)
+BOX_VERTICES = 600
+# surface points flow picks its visible points from (dense, so that the visibility test and the image's
+# corners, not the sampling, decide which max_points are followed)
+FLOW_SURFACE_SAMPLES = 12000
+# a single measurement's d2 / dof counts at most this much in the running NIS: one wild outlier raises
+# it (the confidence falls) without zeroing the confidence for the frames the NIS takes to forget it
+NIS_CAP = 100.0
+# an estimate the track keeps disbelieving replaces the prediction with this many times the estimator's
+# covariance (10x its standard deviations) on top: wide enough to take the estimate, without cutting the
+# track in two for the smoother
+RESTART_WIDEN = 100.0
+# an inconclusive estimate (too few inliers, a false box) asked for because the measurements failed keeps
+# the track until this many times max_predicted frames have passed without a measurement
+INCONCLUSIVE_PATIENCE = 3
 
 
 @dataclass(frozen=True)
@@ -74,12 +90,10 @@ class PartSpec:
 @dataclass
 class PartState:
     """One part on one frame. ``R``, ``t`` (mm, model-to-camera) are None when there is no pose.
-    ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: diagnostics (points, inliers,
-    RMS px, Mahalanobis d2, estimator score, why the estimator ran, ``kinematic``: whether the estimate
-    was replaced by the instrument fit's pose, ``nis``: the track's running normalised innovation).
-    ``confidence`` as :meth:`Tracker.step` returns it is the
-    tracker's own working value (estimator score, decaying without a measurement); what a run writes is
-    :meth:`settled`'s, from the covariance."""
+    ``box``: the box used or predicted (x, y, w, h pixel edges). ``info``: what the tracker did for it
+    (:class:`~.status.Diagnostics`: why the estimator ran, its score, the measurements' fit, timings).
+    ``confidence``: :func:`confidence` from the filter's covariance (the causal one as :meth:`Tracker.step`
+    returns it; :meth:`settle` recomputes it from the smoothed state); 0 without a pose."""
 
     spec: PartSpec
     status: Status
@@ -87,7 +101,7 @@ class PartState:
     R: np.ndarray | None
     t: np.ndarray | None
     box: Box | None
-    info: dict = field(default_factory=dict)
+    info: Diagnostics = field(default_factory=Diagnostics)
     filter_step: FilterStep | None = None  # the part's filter this frame (for smoothing; None without a pose)
     # the instrument's articulated state this part is a view of: (its smoothing key, the filter, its step)
     shared: tuple[str, InstrumentKalman, FilterStep] | None = None
@@ -129,7 +143,7 @@ class PartState:
         # the smoother moving the pose away from what the forward filter had is a disagreement the
         # covariance does not show (zero when causal)
         moved = 0.0 if self.t is None else float(np.linalg.norm(out.t - self.t))
-        conf = confidence(out.filter_step.P[0:3, 0:3], self.info.get("nis", 1.0), moved,
+        conf = confidence(out.filter_step.P[0:3, 0:3], 1.0 if self.info.nis is None else self.info.nis, moved,
                           self.spec.diameter, cfg)
         return dataclasses.replace(out, confidence=conf)
 
@@ -218,7 +232,6 @@ class _Track:
         self.spec, self.cfg, self.shared, self.widen = spec, cfg, shared, widen
         self.kf = self.new_filter()
         self.status = Status.INIT
-        self.confidence = 0.0
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         self.n_points_fresh = 0
         self.lift_cov = np.zeros((6, 6))  # pose covariance when the flow points were lifted to 3D
@@ -229,10 +242,10 @@ class _Track:
         self.unseen = 0  # estimator runs in a row that saw nothing of a tracked part
         self.occluded = 0  # frames held (predicted) while unseen and the rest of its instrument was measured
         self.nis = 1.0  # running mean of the measurements' normalised innovation (d2 / dof; 1 when consistent)
-        self.info: dict = {}
+        self.info = Diagnostics()
         rng = np.random.default_rng(spec.obj_id)
         v = spec.vertices
-        self.box_vertices = v if len(v) <= 600 else v[rng.choice(len(v), 600, replace=False)]
+        self.box_vertices = v if len(v) <= BOX_VERTICES else v[rng.choice(len(v), BOX_VERTICES, replace=False)]
 
     @property
     def has_pose(self) -> bool:
@@ -249,9 +262,12 @@ class _Track:
         dimension; ``accepted`` False for one the gate kept out) in the info and in the running NIS."""
         if d2 is None or math.isnan(d2):
             return
-        self.info["d2" if accepted else "rejected_d2"] = d2
-        # a gated-out estimate counts too (capped: one wild outlier should not zero the confidence)
-        self.nis = (1.0 - weight) * self.nis + weight * min(d2 / max(dof, 1), 100.0)
+        if accepted:
+            self.info.d2 = d2
+        else:
+            self.info.rejected_d2 = d2
+        # a gated-out estimate counts too (capped, NIS_CAP)
+        self.nis = (1.0 - weight) * self.nis + weight * min(d2 / max(dof, 1), NIS_CAP)
 
     def drop(self) -> None:
         if isinstance(self.kf, PartFilter):
@@ -259,7 +275,7 @@ class _Track:
         self.kf = self.new_filter()
         self.unseen = self.occluded = 0
         self.nis = 1.0
-        self.status, self.confidence = Status.LOST, 0.0
+        self.status = Status.LOST
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
 
@@ -295,7 +311,7 @@ class Tracker:
         self.samples: dict[str, SurfaceSamples] = {}
         for s in specs:
             mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
-            self.samples[s.name] = SurfaceSamples.of_mesh(mesh, 12000, seed=s.obj_id)
+            self.samples[s.name] = SurfaceSamples.of_mesh(mesh, FLOW_SURFACE_SAMPLES, seed=s.obj_id)
         self.prev_gray: np.ndarray | None = None
         self._est_cov = np.diag([self.cfg.est_pos_std_mm**2] * 3 + [np.radians(self.cfg.est_rot_std_deg)**2] * 3)
         self._kinematic = self.cfg.kinematic_config()
@@ -304,9 +320,7 @@ class Tracker:
                 check_anchor(self._kinematic, estimator.model.parts)
             except ValueError as e:
                 raise TrackConfigError(str(e)) from None
-        # an estimator pose the filter disbelieves replaces the prediction (10x the estimator's noise on
-        # top of it), without cutting the track in two for the smoother
-        self._widen = 100.0 * self._est_cov
+        self._widen = RESTART_WIDEN * self._est_cov
         self.tracks = [_Track(s, self.cfg, self.shared.get(f"{s.instrument}.{s.instance}"), self._widen)
                        for s in specs]
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
@@ -353,7 +367,7 @@ class Tracker:
         """Whether the kinematic fit moved the part away from its tracked pose ``prior`` by more than the
         estimator's noise (then a keyframe whose prior won is fused as a measurement, not taken as a
         confirmation)."""
-        if not res.counts.get("kinematic"):
+        if not res.kinematic:
             return False
         dr, dt = pose_distance(res.R, res.t, *prior)
         return dr > self.cfg.est_rot_std_deg or dt > self.cfg.est_pos_std_mm
@@ -392,7 +406,7 @@ class Tracker:
         else:
             tr.kf = tr.new_filter()
             tr.kf.init(R, t, time_s - 1e-6, self._est_cov)
-        tr.status, tr.confidence, tr.nis = Status.KEYFRAME, 1.0, 1.0
+        tr.status, tr.nis = Status.KEYFRAME, 1.0
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
@@ -417,7 +431,7 @@ class Tracker:
         snaps: dict[str, FilterStep] = {}  # instrument key -> its state this frame
         for tr in self.tracks:
             if tr.has_pose:
-                tr.info["nis"] = tr.nis
+                tr.info.nis = tr.nis
                 R, t = tr.kf.pose
                 shared = None
                 if isinstance(tr.kf, PartFilter):
@@ -426,11 +440,12 @@ class Tracker:
                     shared, step = (key, tr.kf.shared, snap), tr.kf.shared.part_step(snap, tr.spec.name)
                 else:
                     step = tr.kf.snapshot()
-                states.append(PartState(tr.spec, tr.status, float(np.clip(tr.confidence, 0, 1)), R, t,
-                                        out_boxes.get(tr.spec.track_id), dict(tr.info), step, shared))
+                state = PartState(tr.spec, tr.status, 0.0, R, t, out_boxes.get(tr.spec.track_id),
+                                  dataclasses.replace(tr.info), step, shared)
+                states.append(state.settled(step, self.cfg))  # the causal confidence
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
-                                        dict(tr.info)))
+                                        dataclasses.replace(tr.info)))
         return states
 
     # ------------------------------------------------------------------ the phases of a step
@@ -459,7 +474,7 @@ class Tracker:
                 tr.points = TrackPoints(followed.uv[sel], followed.xyz[sel, :3])
                 lk_ms[id(tr)] = total * len(tr.points) / max(len(followed), 1)
         for tr in self.tracks:
-            tr.info = {}
+            tr.info = Diagnostics()
             if not tr.has_pose:
                 continue
             t_flow = time.perf_counter()
@@ -467,7 +482,7 @@ class Tracker:
             if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
                 tr.seeded = False
                 tr.kf.prior = None  # a new segment: the smoother does not link it to the old track
-                tr.info["source"] = "set_pose"
+                tr.info.source = "set_pose"
                 continue
             tr.since_keyframe += 1
             tr.since_refresh += 1
@@ -475,10 +490,11 @@ class Tracker:
             if self.prev_gray is not None and len(tr.points):
                 R0, t0 = tr.kf.pose
                 meas = pnp_measurement(tr.points, K, R0, t0, cfg.inlier_px, cfg.min_points)
-            tr.info["points"] = len(tr.points)
+            tr.info.points = len(tr.points)
             accepted = False
             if meas is not None:
-                tr.info.update(inliers=int(meas.inliers.sum()), inlier_ratio=meas.inlier_ratio, rms_px=meas.rms_px)
+                tr.info.inliers, tr.info.inlier_ratio = int(meas.inliers.sum()), float(meas.inlier_ratio)
+                tr.info.rms_px = float(meas.rms_px)
                 tr.points = tr.points.subset(meas.inliers)
                 if meas.inlier_ratio >= cfg.min_inlier_ratio and meas.rms_px <= cfg.max_rms_px:
                     # the points' 3D positions came from the pose at lifting time, errors included: a
@@ -488,19 +504,16 @@ class Tracker:
                     tr.note_d2(tr.kf.last_d2, 6, self.cfg.confidence_nis_weight, accepted)
             if accepted:
                 tr.status, tr.since_meas = Status.TRACKING, 0
-                tr.confidence = float(meas.inlier_ratio * np.exp(-meas.rms_px / 2.0)
-                                      * min(1.0, meas.inliers.sum() / 20.0))
             else:
                 tr.status, tr.since_meas = Status.PREDICTED, tr.since_meas + 1
-                tr.confidence *= 0.7
-            tr.info["flow_ms"] = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
+            tr.info.flow_ms = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
 
     def _measure_regions(self, frame_rgb: np.ndarray) -> None:
         """Between keyframes, measure every predicted part against the frame's colours along its
         silhouette (:mod:`.region`); all posed parts are rendered together, so tools hide each other."""
         cfg = self.cfg
         due = [tr for tr in self.tracks if tr.has_pose and tr.status == Status.PREDICTED
-               and "source" not in tr.info and tr.since_keyframe < cfg.keyframe_every]
+               and tr.info.source is None and tr.since_keyframe < cfg.keyframe_every]
         if not due:
             return
         t0 = time.perf_counter()
@@ -521,7 +534,7 @@ class Tracker:
             if key in self.shared and isinstance(trs[0].kf, PartFilter):
                 self._measure_shared(frame_rgb, contours, key, trs)
                 for tr in trs:
-                    tr.info["region_ms"] = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+                    tr.info.region_ms = share + 1e3 * (time.perf_counter() - t1) / len(trs)
                 continue
             results = {}
             models = self._region_models(key, trs)
@@ -532,19 +545,18 @@ class Tracker:
                 res = results.get(tr.spec.name)
                 if res is None:
                     continue
-                tr.info.update(region_lines=res.lines, agreement=res.agreement)
+                tr.info.region_lines, tr.info.agreement = int(res.lines), float(res.agreement)
                 basis, cov = res.observed(cfg.region_max_std_mm, cfg.region_max_std_deg)
                 if (res.agreement >= cfg.region_min_agreement and len(basis)
                         and tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis)):
                     tr.status, tr.since_meas = Status.TRACKING, 0
                     tr.note_d2(tr.kf.last_d2, len(basis), cfg.confidence_nis_weight)
-                    tr.confidence = max(tr.confidence, res.agreement)
                     accepted.add(tr.spec.name)
             for model, _ in models:  # the joints a fit found seed the next frame's, once its root was taken
                 if isinstance(model, ArticulatedModel) and model.solution is not None and model.parts[0] in accepted:
                     self._joints[key] = model.joint_state(model.solution)
             for tr in trs:
-                tr.info["region_ms"] = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+                tr.info.region_ms = share + 1e3 * (time.perf_counter() - t1) / len(trs)
 
     def _measure_shared(self, frame_rgb: np.ndarray, contours: Mapping, key: str, trs: list[_Track]) -> None:
         """The region measurement of an instrument with one articulated state: one fit of the whole
@@ -561,7 +573,7 @@ class Tracker:
         for tr in trs:
             res = results.get(tr.spec.name)
             if res is not None:
-                tr.info.update(region_lines=res.lines, agreement=res.agreement)
+                tr.info.region_lines, tr.info.agreement = int(res.lines), float(res.agreement)
         if agreement < cfg.region_min_agreement:
             return
         basis, cov = observed_directions(model.solution_cov, cfg.region_max_std_mm, cfg.region_max_std_deg)
@@ -575,7 +587,6 @@ class Tracker:
             if res is not None and res.agreement >= cfg.region_min_agreement:
                 tr.status, tr.since_meas = Status.TRACKING, 0
                 tr.note_d2(d2, len(basis), cfg.confidence_nis_weight)
-                tr.confidence = max(tr.confidence, res.agreement)
 
     def _region_models(self, key: str, trs: list[_Track]) -> list[tuple[PoseModel, np.ndarray]]:
         """How the region measurement moves one instrument's due parts, with each model's prior
@@ -615,7 +626,7 @@ class Tracker:
                 seen = det is not None and pbox is not None and box_iou(det, pbox) >= cfg.min_iou
                 if pbox is None or (inside < cfg.min_visible and not seen):
                     tr.drop()
-                    tr.info["why_lost"] = "left the image"
+                    tr.info.why_lost = "left the image"
                     pbox = None
             if pbox is None:
                 det = self._pick_box(tr, boxes.get(sid, ()), None)
@@ -663,7 +674,7 @@ class Tracker:
         # with the kinematic fit, the poses of one instrument's parts on a keyframe come from one joint fit:
         # one measurement of its state, not one per part, so each part's share of it is that much weaker
         share = Counter(id(tr.kf.shared) for (tr, _, _, _), res, good in zip(requests, results, good_results)
-                        if isinstance(tr.kf, PartFilter) and good and res.counts.get("kinematic"))
+                        if isinstance(tr.kf, PartFilter) and good and res.kinematic)
 
         def est_cov_of(tr: _Track, res) -> np.ndarray:
             k = share[id(tr.kf.shared)] if isinstance(tr.kf, PartFilter) else 0
@@ -681,20 +692,18 @@ class Tracker:
         unseen: list[tuple[_Track, str]] = []
         for (tr, box, prior, why), res, good in zip(requests, results, good_results):
             est_cov = est_cov_of(tr, res)
-            tr.info.update(estimator=why, estimator_ms=est_ms, score=float(res.score), est_inliers=int(res.n_inliers),
-                           prior_won=bool(res.counts.get("prior_won", 0)),
-                           kinematic=bool(res.counts.get("kinematic", 0)))
-            conf = float(1.0 - np.exp(-max(res.score, 0.0)))
+            tr.info.estimator, tr.info.estimator_ms = why, est_ms
+            tr.info.score, tr.info.est_inliers = float(res.score), int(res.n_inliers)
+            tr.info.prior_won, tr.info.kinematic = bool(res.prior_won), res.kinematic
             if good:
                 tr.unseen = tr.occluded = 0
             if tr.has_pose and good:
-                if res.counts.get("prior_won") and not self._moved(res, prior):
+                if res.prior_won and not self._moved(res, prior):
                     # the tracked pose explains the image best: a confirmation, not a new measurement
                     # (fusing the filter's own pose again would shrink its covariance for nothing)
-                    tr.status, tr.confidence = Status.KEYFRAME, max(conf, tr.confidence)
-                    tr.since_meas = 0
+                    tr.status, tr.since_meas = Status.KEYFRAME, 0
                 elif tr.kf.update(res.R, res.t, est_cov):
-                    tr.status, tr.confidence, tr.since_meas = Status.KEYFRAME, conf, 0
+                    tr.status, tr.since_meas = Status.KEYFRAME, 0
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight)
                     if isinstance(tr.kf, PartFilter) and tr.kf.is_root:
                         tr.kf.shared.note_root_pose(res.R, res.t)  # an independent shaft axis for the trocar
@@ -702,7 +711,7 @@ class Tracker:
                     # the estimator has disagreed with the track on max_rejections frames in a row:
                     # the track is what is wrong (and so were its disagreements: the NIS starts afresh)
                     tr.kf.restart(res.R, res.t, est_cov, self._widen)
-                    tr.status, tr.confidence, tr.since_meas, tr.nis = Status.KEYFRAME, conf, 0, 1.0
+                    tr.status, tr.since_meas, tr.nis = Status.KEYFRAME, 0, 1.0
                 else:
                     # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
                     # roll) as a fast move: the filter carries the pose and the next frames decide
@@ -710,10 +719,10 @@ class Tracker:
                 tr.since_keyframe = 0
             elif good:
                 tr.kf.init(res.R, res.t, time_s, est_cov)
-                tr.status, tr.confidence = Status.KEYFRAME, conf
+                tr.status = Status.KEYFRAME
                 tr.since_keyframe, tr.since_meas = 0, 0
             elif tr.has_pose and res.ok and res.score > 0.0 and (
-                    why in SCHEDULED or tr.since_meas < 3 * cfg.max_predicted):
+                    why in SCHEDULED or tr.since_meas < INCONCLUSIVE_PATIENCE * cfg.max_predicted):
                 # inconclusive (too few inliers, or a false box): keep the track on the filter
                 tr.since_keyframe = 0
                 tr.unseen = 0  # the network saw something: a later "sees nothing" gets its retry
@@ -734,11 +743,11 @@ class Tracker:
                 # the rest of its instrument is seen: most likely hidden behind the other tool. The filter
                 # carries it (its covariance growing) and the smoother bridges the gap when it is back
                 tr.occluded += 1
-                tr.status, tr.confidence = Status.PREDICTED, 0.5 * tr.confidence
-                tr.info["occluded"] = tr.occluded
+                tr.status = Status.PREDICTED
+                tr.info.occluded = tr.occluded
             else:
                 tr.drop()
-                tr.info["why_lost"] = why_lost
+                tr.info.why_lost = why_lost
 
     def _refresh_points(self, gray: np.ndarray) -> None:
         """Pick fresh flow points where needed (after all poses of the frame are settled)."""
@@ -753,4 +762,4 @@ class Tracker:
             if stale:
                 t_ref = time.perf_counter()
                 self._refresh(tr, gray)
-                tr.info["refresh_ms"] = 1e3 * (time.perf_counter() - t_ref)
+                tr.info.refresh_ms = 1e3 * (time.perf_counter() - t_ref)
