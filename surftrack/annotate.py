@@ -185,22 +185,36 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
             files[f] = s.name
 
 
-def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
-                   on_frame: Callable[[int, float, list[PartState]], None] | None = None,
-                   checkpoint: tuple | None = None) -> dict:
-    """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
-    part, outputs; ``partial``: None, or for a video that stops decoding part of the way through, what was
-    tracked: ``frames_decoded``, ``frames_in_video`` (0 when the container does not say),
-    ``stopped_at_s`` (the last decoded frame's time) and ``error``). ``on_frame(index, time_s, states)``
-    is called after every processed frame. ``checkpoint``: (model, training config) already loaded from
-    ``opts.model`` (a batch worker loads it once for all its videos)."""
-    from surftrack.io import TrackWriter
+@dataclass
+class _Run:
+    """What one tracking run works from, every input checked (:func:`_prepare`) before an output is opened.
+    ``per_frame``: frame index -> track id -> [(box, score)] (undistorted); ``det_times``: frame index ->
+    the boxes' time for that frame (empty for boxes converted from COCO, which carry none); ``fitters``:
+    (instrument, instance) -> the per-frame joint fit written as the joints outputs."""
+
+    video: Path
+    boxes: Path
+    camera: Path
+    model_path: Path
+    out: Path
+    info: object  # surftrack.io.video's probe of the video
+    cam: object  # surftrack.track.inputs' camera (K, size, undistorter)
+    specs: list[PartSpec]
+    notes: list[str]
+    tracker: Tracker
+    per_frame: dict[int, dict[int, list]]
+    det_times: dict[int, float]
+    meta: dict
+    fitters: dict = field(default_factory=dict)
+
+
+def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple | None) -> _Run:
+    """Check the inputs of a run (video, intrinsics, boxes, model, outputs; :class:`InputError` naming the
+    file on the first problem) and build its tracker and joint fitters."""
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.pose import PoseEstimator
 
-    opts = opts or AnnotateOptions()
-    video = Path(video)
     info = probe_video(video)
     size = (info.width, info.height)
     doc = load_boxes(boxes, size)
@@ -223,25 +237,18 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
     model, train_cfg = checkpoint or load_checkpoint(model_path, opts.device or "cpu")[:2]
     specs, notes = match_parts(doc, model, str(boxes), opts.instruments)
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
-    _check_outputs(video, Path(boxes), Path(camera), model_path, out, opts, size, specs)
+    _check_outputs(video, boxes, Path(camera), model_path, out, opts, size, specs)
     estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
                               crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
     config = opts.config.for_fps(info.fps)  # the keyframe bound in seconds, as frames of this video
     tracker = Tracker(estimator, cam.K, size, specs, config, opts.instruments)
-    undistort = cam.undistorter()
-    per_frame = _frame_boxes(doc, cam)
     det_times = {} if doc.get("meta", {}).get("converted_from") == "coco" else \
         {int(f["index"]): float(f["time"]) for f in doc["frames"]}
-    half_frame = 0.5 / info.fps
-
     meta = {"video": str(video), "boxes": str(boxes), "camera": str(camera), "model": str(model_path),
             "config": config.to_dict(), "surftrack_version": __version__,
             "parts": {s.name: {"track_id": s.track_id, "obj_id": s.obj_id} for s in specs}}
-    counts = {s.name: Counter() for s in specs}
-    conf_sum = {s.name: 0.0 for s in specs}
-    timing = Counter()
-    n_done, t_first, last_t = 0, None, None
-    fitters = {}
+    run = _Run(video, boxes, Path(camera), model_path, out, info, cam, specs, notes, tracker,
+               _frame_boxes(doc, cam), det_times, meta)
     joints = opts.joints or opts.joints_csv is not None
     if joints or opts.config.kinematic:
         from surftrack.pose.kinematic import described_instrument, instrument_parts
@@ -256,37 +263,68 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                                                     ("no instrument-consistent fit", opts.config.kinematic)) if on)
                 notes.append(f"{why}: {lost} for it")
             elif joints:
-                fitters.update({(s.instrument, s.instance): ArticulationTracker(described)
-                                for s in specs if s.instrument == inst})
+                run.fitters.update({(s.instrument, s.instance): ArticulationTracker(described)
+                                    for s in specs if s.instrument == inst})
+    return run
+
+
+def _open_sinks(stack: contextlib.ExitStack, run: _Run, opts: AnnotateOptions, timing: Counter
+                ) -> tuple[object, list[FrameSink], dict[str, str]]:
+    """Open the run's outputs on ``stack`` (each closed and finalised by it, however the run ends): the
+    MCAP first (before heavy work), then the overlay, TUM and joints sinks asked for. Returns the MCAP's
+    :class:`~surftrack.io.TrackWriter`, the sinks and the outputs' paths by kind."""
+    from surftrack.io import TrackWriter
+
+    outputs = {"mcap": str(run.out)}
+    writer = stack.enter_context(TrackWriter(run.out, run.meta))
+    stack.callback(run.tracker.close)
+    sinks: list[FrameSink] = [McapSink(writer, run.specs, run.cam.K, images=opts.mcap_images)]
+    if opts.overlay is not None:
+        from surftrack.io.overlay import OverlayWriter
+
+        outputs["overlay"] = str(opts.overlay)
+        sinks.append(OverlaySink(stack.enter_context(
+            OverlayWriter(opts.overlay, run.info.fps, run.info.width, run.info.height, run.cam.K))))
+    if opts.export_tum is not None:
+        from surftrack.io.tum import TumWriter
+
+        outputs["tum"] = str(opts.export_tum)
+        sinks.append(TumSink(stack.enter_context(TumWriter(opts.export_tum))))
+    joints_csv = None
+    if opts.joints_csv is not None:
+        from surftrack.io.joints_csv import JointCsvWriter
+
+        outputs["joints_csv"] = str(opts.joints_csv)
+        joints_csv = stack.enter_context(JointCsvWriter(opts.joints_csv))
+    if run.fitters:
+        sinks.append(JointsSink(writer, run.fitters, joints_csv, timing))
+    return writer, sinks, outputs
+
+
+def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions | None = None,
+                   on_frame: Callable[[int, float, list[PartState]], None] | None = None,
+                   checkpoint: tuple | None = None) -> dict:
+    """Track ``video`` with the detections ``boxes``; returns a summary (frames, frames/s, statuses per
+    part, outputs; ``partial``: None, or for a video that stops decoding part of the way through, what was
+    tracked: ``frames_decoded``, ``frames_in_video`` (0 when the container does not say),
+    ``stopped_at_s`` (the last decoded frame's time) and ``error``). ``on_frame(index, time_s, states)``
+    is called after every processed frame. ``checkpoint``: (model, training config) already loaded from
+    ``opts.model`` (a batch worker loads it once for all its videos)."""
     from tqdm import tqdm
 
-    outputs = {"mcap": str(out)}
-    if opts.overlay is not None:
-        outputs["overlay"] = str(opts.overlay)
-    if opts.export_tum is not None:
-        outputs["tum"] = str(opts.export_tum)
-    if opts.joints_csv is not None:
-        outputs["joints_csv"] = str(opts.joints_csv)
+    opts = opts or AnnotateOptions()
+    video, boxes = Path(video), Path(boxes)
+    run = _prepare(video, boxes, opts, checkpoint)
+    info, cam, tracker, per_frame, det_times = run.info, run.cam, run.tracker, run.per_frame, run.det_times
+    notes = run.notes
+    undistort = cam.undistorter()
+    half_frame = 0.5 / info.fps
+    counts = {s.name: Counter() for s in run.specs}
+    conf_sum = {s.name: 0.0 for s in run.specs}
+    timing = Counter()
+    n_done, t_first, last_t = 0, None, None
     with contextlib.ExitStack() as outputs_open:  # every output is finished, whatever stops the run
-        writer = outputs_open.enter_context(TrackWriter(out, meta))  # opened before heavy work
-        outputs_open.callback(tracker.close)
-        sinks: list[FrameSink] = [McapSink(writer, specs, cam.K, images=opts.mcap_images)]
-        if opts.overlay is not None:
-            from surftrack.io.overlay import OverlayWriter
-
-            sinks.append(OverlaySink(outputs_open.enter_context(
-                OverlayWriter(opts.overlay, info.fps, info.width, info.height, cam.K))))
-        if opts.export_tum is not None:
-            from surftrack.io.tum import TumWriter
-
-            sinks.append(TumSink(outputs_open.enter_context(TumWriter(opts.export_tum))))
-        joints_csv = None
-        if opts.joints_csv is not None:
-            from surftrack.io.joints_csv import JointCsvWriter
-
-            joints_csv = outputs_open.enter_context(JointCsvWriter(opts.joints_csv))
-        if fitters:
-            sinks.append(JointsSink(writer, fitters, joints_csv, timing))
+        writer, sinks, outputs = _open_sinks(outputs_open, run, opts, timing)
         bar = tqdm(total=_frames_to_read(info, opts.end), unit="frame", desc=video.name,
                    disable=not opts.progress)
         keep_frames = opts.overlay is not None or opts.mcap_images
