@@ -5,7 +5,7 @@ recovers parts, pyramidal LK on model points plus PnP (:mod:`.flow`) measures be
 :class:`PoseKalman` (:mod:`.kalman`, 12-state error-state constant velocity, gated before update) fuses
 them; the parts of a described instrument share one articulated state (:mod:`.instrument`). :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
 :mod:`.config` holds the settings (``configs/track/default.yaml``); :mod:`.smoother` smooths the filter's
-states backward for offline runs; :mod:`.status` names a part's status on a frame.
+states backward for offline runs; :mod:`.status` names a part's status on a frame and its diagnostics.
 """
 
 from surftrack.track.config import TrackConfig, TrackConfigError, load_track_config
