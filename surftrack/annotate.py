@@ -33,7 +33,7 @@ from surftrack.io.sinks import FrameSink, JointsSink, McapSink, OverlaySink, Tum
 from surftrack.io.video import read_video_frames
 from surftrack.track import PartSpec, PartState, TrackConfig, Tracker, filter_steps
 from surftrack.track.smoother import LagSmoother
-from surftrack.track.inputs import InputError, load_boxes, load_camera, probe_video
+from surftrack.track.inputs import CameraInput, InputError, VideoInfo, load_boxes, load_camera, probe_video
 
 @dataclass
 class AnnotateOptions:
@@ -187,18 +187,16 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
 
 @dataclass
 class _Run:
-    """What one tracking run works from, every input checked (:func:`_prepare`) before an output is opened.
+    """What one tracking run works from, every input checked (:func:`_prepare`) before an output is opened:
+    ``out`` the MCAP's path, the video's ``info``, the camera ``cam``, the parts ``specs``, ``notes`` for the
+    summary, the ``tracker``, the MCAP's metadata ``meta``.
     ``per_frame``: frame index -> track id -> [(box, score)] (undistorted); ``det_times``: frame index ->
     the boxes' time for that frame (empty for boxes converted from COCO, which carry none); ``fitters``:
     (instrument, instance) -> the per-frame joint fit written as the joints outputs."""
 
-    video: Path
-    boxes: Path
-    camera: Path
-    model_path: Path
     out: Path
-    info: object  # surftrack.io.video's probe of the video
-    cam: object  # surftrack.track.inputs' camera (K, size, undistorter)
+    info: VideoInfo
+    cam: CameraInput
     specs: list[PartSpec]
     notes: list[str]
     tracker: Tracker
@@ -247,8 +245,7 @@ def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple 
     meta = {"video": str(video), "boxes": str(boxes), "camera": str(camera), "model": str(model_path),
             "config": config.to_dict(), "surftrack_version": __version__,
             "parts": {s.name: {"track_id": s.track_id, "obj_id": s.obj_id} for s in specs}}
-    run = _Run(video, boxes, Path(camera), model_path, out, info, cam, specs, notes, tracker,
-               _frame_boxes(doc, cam), det_times, meta)
+    run = _Run(out, info, cam, specs, notes, tracker, _frame_boxes(doc, cam), det_times, meta)
     joints = opts.joints or opts.joints_csv is not None
     if joints or opts.config.kinematic:
         from surftrack.pose.kinematic import described_instrument, instrument_parts
