@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         gt = ClipGroundTruth(clip / "gt.json")
         fps = json.loads((clip / "gt.json").read_text()).get("fps") or args.fps
         causal, smoothed = TrackScore(gt, instruments=tools), TrackScore(gt, instruments=tools)
-        tracked_ms, est_calls, kinds = {}, Counter(), Counter()
+        tracked_ms, est_calls, kinds, restarts = {}, Counter(), Counter(), Counter()
         smoother = LagSmoother(round(cfg.smooth_lag_s * fps))
         smooth_s = 0.0
 
@@ -132,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                     tracked_ms.setdefault(s.spec.part, []).append((s.info.flow_ms or 0.0) + (s.info.region_ms or 0.0))
                 if s.info.estimator is not None:
                     est_calls[s.info.estimator] += 1
+                restarts[s.spec.part] += bool(s.info.restarted)
             t0 = time.perf_counter()
             ready = smoother.push((index, time_s, states), filter_steps(states))
             smooth_s += time.perf_counter() - t0
@@ -152,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{fps_smoothed:.2f} frames/s (smoothing {1e3 * smooth_s / run['frames']:.1f} ms/frame); "
               f"part-frames: " + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())))
         print("estimator runs: " + ", ".join(f"{k} {v}" for k, v in est_calls.most_common()))
+        print("restarts (kalman.max_rejections estimates in a row outside the gate): "
+              + ", ".join(f"{part} {restarts[part]}" for part in parts))
         for part, v in sorted(tracked_ms.items()):
             print(f"tracked-frame cost (filter, flow, silhouette), {part}: median {statistics.median(v):.2f} ms over "
                   f"{len(v)} frames")

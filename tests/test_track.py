@@ -672,6 +672,47 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
     assert next(script, None) is None
 
 
+def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny_ckpt):
+    """One estimate outside the filter's gate is left out (as often an outlier as a move); after
+    ``kalman.max_rejections`` of them in a row the track restarts at the estimate, and says so."""
+    from surftrack.model import load_checkpoint
+    from surftrack.pose.estimator import PartPose
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    info = next(p for p in model.parts if p.name == "wrist")
+    tid = lnd_parts["wrist"]
+    gt, frames = ClipGroundTruth(clip / "gt.json"), _frames(clip)
+    i = max(range(len(frames)), key=lambda k: gt.pose(k, tid)[2])
+    R, t, _ = gt.pose(i, tid)
+
+    class Still:
+        """A tool standing still, estimated at ``t + shift``."""
+
+        def __init__(self):
+            self.model, self.shift = model, np.zeros(3)
+
+        def estimate(self, image, boxes, K, priors=None):
+            return [PartPose(o, info.name, info.instrument, R, t + self.shift, 5.0, 200, True, {}, (0, 0, 1, 1),
+                             np.eye(3)) for o, _ in boxes]
+
+    est = Still()
+    spec = PartSpec(tid, info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
+    # a track sure of its place and motion, the estimator on every frame
+    cfg = TrackConfig(region=False, flow=False, kinematic=False, keyframe_every=1, est_pos_std_mm=1.0,
+                      est_lateral_std_mm=1.0, kalman=dataclasses.replace(TrackConfig().kalman, init_vel_std_mm_s=5.0,
+                                                                         max_rejections=2))
+    tracker = Tracker(est, _K(clip), (320, 256), [spec], cfg)
+    tracker.set_pose(tid, R, t, 0.0)
+    for k in range(1, 4):
+        assert tracker.step(frames[i], k / 10.0, None)[0].status == "keyframe"
+    est.shift = np.array([20.0, 0.0, 0.0])
+    states = [tracker.step(frames[i], k / 10.0, None)[0] for k in (4, 5)]
+    assert [s.status for s in states] == ["predicted", "keyframe"]
+    assert [s.info.restarted for s in states] == [None, True]
+    assert states[0].info.rejected_d2 > cfg.kalman.gate_chi2
+    assert np.linalg.norm(states[0].t - t) < 0.5 and np.linalg.norm(states[1].t - (t + est.shift)) < 0.5
+
+
 def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(lnd_parts):
     """The written confidence falls as the covariance grows without measurements; it is the probability
     that the position error is within 0.1 diameter (checked by sampling), and falls when the track's

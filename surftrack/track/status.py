@@ -48,7 +48,9 @@ class Diagnostics:
     Estimator (a keyframe): ``estimator`` why it ran (``init``, ``reappearance``, ``cadence``, ``box
     disagreement``, ``instrument keyframe``, ``gate lockout``, ``no measurement``), ``estimator_ms`` this
     part's share of the call, ``score`` and ``est_inliers`` its pose's, ``prior_won`` whether the tracked
-    pose beat the estimator's hypotheses, ``kinematic`` whether the pose is the instrument fit's.
+    pose beat the estimator's hypotheses, ``kinematic`` whether the pose is the instrument fit's,
+    ``restarted`` whether the track was restarted at the estimate (``kalman.max_rejections`` estimates in a
+    row outside the filter's gate).
     Filter: ``d2`` the accepted measurement's squared Mahalanobis distance, ``rejected_d2`` that of one
     the gate kept out, ``nis`` the track's running normalised innovation (1 when its measurements agree
     with their covariances). Flow: ``points`` followed, ``inliers``, ``inlier_ratio``, ``rms_px`` of its
@@ -64,6 +66,7 @@ class Diagnostics:
     est_inliers: int | None = None
     prior_won: bool | None = None
     kinematic: bool | None = None
+    restarted: bool | None = None
     d2: float | None = None
     rejected_d2: float | None = None
     nis: float | None = None

@@ -712,6 +712,7 @@ class Tracker:
                     # the track is what is wrong (and so were its disagreements: the NIS starts afresh)
                     tr.kf.restart(res.R, res.t, est_cov, self._widen)
                     tr.status, tr.since_meas, tr.nis = Status.KEYFRAME, 0, 1.0
+                    tr.info.restarted = True
                 else:
                     # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
                     # roll) as a fast move: the filter carries the pose and the next frames decide
