@@ -27,7 +27,7 @@ Steps (each resumable: an existing output is reused):
 4. ``surftrack eval --suite`` (the fixed held-out suite of ``configs/eval/suite.yaml``, its image sets and
    its tracking clips; fast preset, one crop view, with the kinematic fit, solver seeds 0, 1 and 2): the
    tables go to
-   ``models/default.eval.md`` and, by hand, into ``models/MODEL_CARD.md``.
+   ``models/default.eval.suite.md`` and, by hand, into ``models/MODEL_CARD.md``.
 
 On the 2-core CPU machine of the model card stages 1-6 took about 9 hours (synthesis ~30 min, training
 ~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training.
@@ -113,20 +113,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
     if not args.skip_eval:
-        from surftrack.annotate import evaluate_clips
-        from surftrack.pose.suite import (clip_table, evaluate_suite, load_suite, load_suite_clips, make_suite,
-                                          make_suite_clips, suite_table)
+        from surftrack.cli import main as surftrack
 
-        # the fixed held-out suite (configs/eval/suite.yaml), fast preset with the fit, solver seeds 0-2
-        sets, clips = load_suite(), load_suite_clips()
-        folders = make_suite(sets, work / "suite", workers=2, progress=True)
-        text = suite_table(evaluate_suite(models / "default.pt", sets, folders, (0, 1, 2), preset="fast",
-                                          device=args.device, kinematic=True), sets)
-        clip_folders = make_suite_clips(clips, work / "suite")
-        text += "\n" + clip_table(evaluate_clips(models / "default.pt", [c.name for c in clips], clip_folders,
-                                                  [0, 1, 2], preset="fast", kinematic=True, device=args.device), clips)
-        (models / "default.eval.md").write_text(text + "\n")
-        print(text)
+        # `surftrack eval --suite` itself: the fixed held-out suite (configs/eval/suite.yaml), its image sets
+        # and tracking clips, fast preset with the fit, solver seeds 0-2
+        code = surftrack(["eval", "--model", str(models / "default.pt"), "--suite", "--suite-dir", str(work / "suite"),
+                          "--preset", "fast", "--kinematic", "--out", str(models / "default.eval")]
+                         + (["--device", args.device] if args.device else []))
+        if code:
+            return code
     return 0
 
 

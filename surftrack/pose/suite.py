@@ -43,6 +43,8 @@ class SuiteSet:
 
 @dataclass(frozen=True)
 class SuiteClip:
+    """A tracking clip of the suite: ``surftrack synth-clip`` with this ``seed``, ``seconds`` long at ``fps``."""
+
     name: str
     seed: int
     seconds: float = 10.0
