@@ -194,7 +194,7 @@ def _context_in_forked_child(queue):
         queue.put(str(e))
 
 
-def test_spawned_workers_render_and_forked_children_fail_clearly():
+def test_pool_workers_render_and_forked_children_fail_clearly():
     parent = _render_sphere_depth()  # the parent holds a context
     with worker_context().Pool(1) as pool:
         child = pool.map(_render_sphere_depth, [0])[0]
@@ -204,7 +204,7 @@ def test_spawned_workers_render_and_forked_children_fail_clearly():
     p.start()
     msg = q.get(timeout=60)
     p.join(timeout=60)
-    assert "spawn" in msg
+    assert "worker_context" in msg
 
 
 def test_missing_egl_gives_a_clear_error(monkeypatch):

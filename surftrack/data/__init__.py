@@ -1,6 +1,6 @@
 """Training data: BOP datasets, object crops (optionally rotated; the crop geometry is
-:mod:`surftrack.geometry`'s), rendered targets, augmentation and torch datasets. Rendering needs spawned
-workers: see :mod:`surftrack.data.dataset`."""
+:mod:`surftrack.geometry`'s), rendered targets, augmentation and torch datasets. Rendering needs workers
+not forked from a process with a GL context: see :mod:`surftrack.data.dataset`."""
 
 from surftrack.data.augment import AugmentConfig, augment
 from surftrack.data.bop import BopDataset, DatasetError, Instance, import_surgripe, load_models, models_layout

@@ -6,7 +6,8 @@ photometric augmentation (:mod:`surftrack.data.augment`). Items are deterministi
 ``(seed, epoch, index)``: call :meth:`CropDataset.set_epoch` before each epoch.
 
 Workers: targets are rendered with OpenGL, created lazily in the process that renders. With
-``num_workers > 0`` the DataLoader MUST use spawned workers::
+``num_workers > 0`` the DataLoader MUST take its workers from ``worker_context()`` (a fork server, or
+``spawn``)::
 
     DataLoader(ds, batch_size=20, num_workers=4, multiprocessing_context=surftrack.render.worker_context(),
                sampler=MixedSampler(len(syn), len(real), batch_size=20))

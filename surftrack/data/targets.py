@@ -7,8 +7,8 @@ crop (:func:`modal_mask`).
 
 GL: the :class:`~surftrack.render.Renderer` is created on the first :meth:`TargetRenderer.render` call
 and dropped when pickled, so a TargetRenderer (and a dataset holding one) can be sent to worker
-processes. Those workers must be started with ``spawn`` (``surftrack.render.worker_context()``): a child
-forked from a process holding a GL context cannot make its own.
+processes. Those workers must come from ``surftrack.render.worker_context()`` (a fork server, or ``spawn``):
+a child forked from a process holding a GL context cannot make its own.
 """
 
 from __future__ import annotations

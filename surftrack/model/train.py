@@ -273,6 +273,11 @@ def _init_loader_worker(_worker_id: int) -> None:
     cv2.setNumThreads(1)
 
 
+#: What the loader's workers import (surftrack.data: the crops, targets, augmentation), imported once by the
+#: fork server they are forked from.
+LOADER_PRELOAD = ("torch", "cv2", "surftrack.data", "surftrack.model.train")
+
+
 def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 0, world: int = 1, sampler=None,
             pin_memory: bool = False):
     from surftrack.render import worker_context
@@ -280,13 +285,14 @@ def _loader(ds, batch: int, workers: int, seed: int, shuffle: bool, rank: int = 
     if sampler is None and world > 1:
         sampler = torch.utils.data.distributed.DistributedSampler(ds, world, rank, shuffle=shuffle, seed=seed)
     g = torch.Generator().manual_seed(seed)
-    # Target rendering needs GL, which needs spawned (not forked) workers; workers are not persistent so
-    # that each epoch's CropDataset.set_epoch reaches them.
+    # Target rendering needs GL, which needs workers not forked from this process (worker_context: forked
+    # from a fork server that imported what they need); workers are not persistent so that each epoch's
+    # CropDataset.set_epoch reaches them.
     return torch.utils.data.DataLoader(
         ds, batch_size=batch, shuffle=shuffle and sampler is None, sampler=sampler, drop_last=shuffle,
         num_workers=workers, generator=g, persistent_workers=False, pin_memory=pin_memory,
         worker_init_fn=_init_loader_worker if workers > 0 else None,
-        multiprocessing_context=worker_context() if workers > 0 else None)
+        multiprocessing_context=worker_context(LOADER_PRELOAD) if workers > 0 else None)
 
 
 def _subset(ds, bop_indices: list[int]):
