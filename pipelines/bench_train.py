@@ -8,7 +8,7 @@ the slower of the two halves shows.
 Without --data it first generates a small dataset (24 images, LND) into a temporary folder; give a
 dataset of a few hundred images or more with many workers, else the loader's start-up dominates. The
 training step is reported over the whole run and after its first logged steps (the workers' start-up,
-which spawns them, loads the dataset and makes a GL context in each, left out).
+which starts them, sends each the dataset and makes a GL context in each, left out).
 """
 
 from __future__ import annotations
