@@ -1,7 +1,7 @@
 """The recipe of the bundled default model (`models/default.pt`): Large Needle Driver, lite config, CPU.
 
     python pipelines/make_default_model.py --work runs/default [--device cpu|cuda] [--skip-eval]
-                                           [--stage7-init CHECKPOINT]
+                                           [--stage7-init CHECKPOINT] [--workers N]
 
 Steps (each resumable: an existing output is reused):
 
@@ -44,14 +44,15 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 
 
-def _synth(out: Path, images: int, seed: int, config: str = "paper", **pose) -> None:
-    """``images`` LND images with the synthesis ``config``, its ``pose`` settings replaced by ``pose``."""
+def _synth(out: Path, images: int, seed: int, config: str = "paper", workers: int = 2, **pose) -> None:
+    """``images`` LND images with the synthesis ``config``, its ``pose`` settings replaced by ``pose``
+    (the images do not depend on ``workers``)."""
     from surftrack.synth.config import load_synth_config
     from surftrack.synth.generate import generate_dataset
 
     cfg = load_synth_config(config, overrides={"instruments": ["large_needle_driver"]})
     cfg = dataclasses.replace(cfg, pose=dataclasses.replace(cfg.pose, **pose)).validate()
-    generate_dataset(out, cfg, images, seed=seed, workers=2, progress=True)
+    generate_dataset(out, cfg, images, seed=seed, workers=workers, progress=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +62,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-eval", action="store_true")
     ap.add_argument("--stage7-init", help="start stage 7 from this checkpoint instead of stage 6 (the bundled "
                     "model's stage 7 started from the int8 export of stage 6, whose fp32 weights were not kept)")
+    ap.add_argument("--workers", type=int, help="synthesis processes and training-loader workers, about one per "
+                    "core on a GPU machine (default: 2 for synthesis, the lite config's loader setting, 0, "
+                    "for training: the 2-core machine the recipe was made on)")
     args = ap.parse_args(argv)
+    if args.workers is not None and args.workers < 1:
+        ap.error(f"--workers must be 1 or more, got {args.workers}")
+    synth_workers = args.workers or 2
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
 
@@ -80,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
               (quarter, "lnd8k_reach", 12000)]
     if not args.stage7_init:
         for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd2k_b", 2000, 15)):
-            _synth(work / name, n, seed)
-        _synth(work / "lnd_across2k", 2000, 16, roll_zero="across")
+            _synth(work / name, n, seed, workers=synth_workers)
+        _synth(work / "lnd_across2k", 2000, 16, workers=synth_workers, roll_zero="across")
         for name, seed in (("lnd_fullroll2k", 18), ("lnd_fullroll2k_b", 20)):
-            _synth(work / name, 2000, seed, roll_deg=(-180.0, 180.0))
+            _synth(work / name, 2000, seed, workers=synth_workers, roll_deg=(-180.0, 180.0))
         view, across, roll = [work / "lnd2k", work / "lnd2k_b"], [work / "lnd_across2k"], [work / "lnd_fullroll2k"]
         join_datasets(work / "lnd4k", view)
         join_datasets(work / "lnd8k_mix", view + across + roll)
@@ -91,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     # stage 7: the instrument's whole reach (the synthesis default), a quarter paper-range images kept in
     for name, seed, config in (("lnd_reach2k_a", 31, "default"), ("lnd_reach2k_b", 32, "default"),
                                ("lnd_reach2k_c", 33, "default"), ("lnd2k_c", 34, "paper")):
-        _synth(work / name, 2000, seed, config)
+        _synth(work / name, 2000, seed, config, workers=synth_workers)
     join_datasets(work / "lnd8k_reach", [work / f"lnd_reach2k_{k}" for k in "abc"] + [work / "lnd2k_c"])
 
     prev = None
@@ -101,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.stage7_init and k == 7:
             prev = Path(args.stage7_init)
         stage = work / f"stage{k}.pt"
+        if args.workers is not None:  # the loader's workers change the speed, not the batches
+            stage_cfg = stage_cfg.replace(run={"workers": args.workers})
         if not stage.is_file() or load_checkpoint(stage)[2]["step"] < steps:  # resumed when cut short
             train(stage_cfg, work / data, stage, steps=steps, device=args.device, init=prev, resume=stage.is_file())
         prev = stage
