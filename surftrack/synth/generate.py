@@ -322,7 +322,7 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
                 bar.update(len(res))
         elif tasks:
             with worker_context((__name__,)).Pool(workers, initializer=_init_worker,
-                                       initargs=(cfg, seed, str(out), instruments)) as pool:
+                                                  initargs=(cfg, seed, str(out), instruments)) as pool:
                 for res in pool.imap_unordered(_run_task, tasks):
                     stats += res
                     bar.update(len(res))
