@@ -433,9 +433,9 @@ def test_crop_dataset_items_shapes_dtypes_and_determinism(bop):
         CropDataset(bop, mask_mode="visible")
 
 
-def test_spawned_dataloader_workers_render(bop):
+def test_dataloader_workers_render(bop):
     ds = CropDataset(bop, crop_size=32)
-    ds[0]  # this process now holds a GL context; spawned workers must still render
+    ds[0]  # this process now holds a GL context; workers from worker_context() must still render
     loader = torch.utils.data.DataLoader(torch.utils.data.Subset(ds, [0, 1]), batch_size=2, num_workers=1,
                                          multiprocessing_context=worker_context())
     batch = next(iter(loader))

@@ -251,8 +251,8 @@ def test_validation_holds_out_whole_tissue_groups(tiny_data):
     assert len({(bop.instances[i].scene_id, bop.instances[i].im_id) for i in val_idx}) == 24
 
 
-def test_spawned_loader_workers_give_the_in_process_batches(tiny_data):
-    """The training loader's spawned workers (their own GL context, OpenCV on one thread) produce exactly
+def test_loader_workers_give_the_in_process_batches(tiny_data):
+    """The training loader's workers (their own GL context, OpenCV on one thread) produce exactly
     the crops and rendered targets of the in-process loader: items depend on (seed, epoch, index) only."""
     from surftrack.data import BopDataset, CropDataset
     from surftrack.model.train import _loader
@@ -264,7 +264,7 @@ def test_spawned_loader_workers_give_the_in_process_batches(tiny_data):
 
 
 def test_cli_train_workers(tiny_data, tmp_path):
-    """`surftrack train --workers N` overrides the config's loader processes (checked; one spawned worker
+    """`surftrack train --workers N` overrides the config's loader processes (checked; one worker
     trains here), so a GPU user sets them without copying the config."""
     import yaml
 
