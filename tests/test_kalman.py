@@ -278,3 +278,37 @@ def test_a_measurement_of_some_directions_leaves_the_others_alone():
     y *= np.sqrt(19.0 / (y @ np.linalg.solve(S, y)))
     assert not kf.update(kf.pose[0], kf.pose[1] + [y[0], 0.0, 0.0], cov, basis=basis)
     assert np.isclose(kf.last_d2, 19.0) and 19.0 < CHI2_6DOF_999
+
+
+def test_coasting_velocities_decay_and_the_prior_records_it():
+    """A part that goes unmeasured (``coast``) keeps a decaying share of its velocities, so its pose stops
+    short of where constant velocity would carry it; without ``coast`` (or with ``coast_tau_s`` 0) the
+    prediction is constant velocity. The recorded prior's F holds the decay (the smoother reads it)."""
+    tau, dt, n = 0.1, 1 / 30, 6
+    v, w = np.array([30.0, -15.0, 8.0]), np.array([0.0, 0.0, 2.0])
+    poses = {}
+    for name, cfg, coast in (("cv", KalmanConfig(coast_tau_s=tau), False), ("off", KalmanConfig(coast_tau_s=0), True),
+                             ("coast", KalmanConfig(coast_tau_s=tau), True)):
+        kf = PoseKalman(cfg)
+        kf.init(np.eye(3), np.zeros(3), 0.0)
+        x = kf.kf.x.copy()
+        x[3:6, 0], x[9:12, 0] = v, w
+        kf.kf.x = x
+        for k in range(1, n + 1):
+            kf.predict(k * dt, coast=coast)
+        poses[name] = (kf.pose, kf.x.copy(), kf.prior.F)
+    (R_cv, t_cv), x_cv, F_cv = poses["cv"]
+    assert np.allclose(t_cv, v * n * dt) and np.allclose(x_cv[3:6], v)
+    assert np.allclose(poses["off"][0][1], t_cv) and np.allclose(poses["off"][2], F_cv)
+    (R_c, t_c), x_c, F_c = poses["coast"]
+    a = np.exp(-dt / tau)
+    assert np.allclose(x_c[3:6], v * a ** n) and np.allclose(x_c[9:12], w * a ** n)
+    assert np.allclose(t_c, v * dt * sum(a ** k for k in range(n)))  # each step moves by the velocity it starts with
+    assert np.allclose(F_c[3:6, 3:6], np.eye(3) * a) and np.allclose(F_c[9:12, 9:12], np.eye(3) * a)
+    assert rotation_angle_deg(R_c, np.eye(3)) < rotation_angle_deg(R_cv, np.eye(3))
+
+
+def test_coast_time_constant_is_checked():
+    with pytest.raises(ValueError, match="coast_tau_s must be >= 0"):
+        KalmanConfig(coast_tau_s=-0.1)
+    assert KalmanConfig(coast_tau_s=0).coast_tau_s == 0.0

@@ -458,8 +458,8 @@ class PartFilter:
             self._jump(R, t, cov)
         s.active.add(self.name)
 
-    def predict(self, time: float) -> None:
-        self.shared.predict(time)
+    def predict(self, time: float, coast: bool = False) -> None:
+        self.shared.predict(time)  # the instrument's state: its other parts may well be measured
 
     def update(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray | None = None,
                gate: bool = True, basis: np.ndarray | None = None) -> bool:

@@ -478,7 +478,7 @@ class Tracker:
             if not tr.has_pose:
                 continue
             t_flow = time.perf_counter()
-            tr.kf.predict(time_s)
+            tr.kf.predict(time_s, coast=tr.since_meas > 0)
             if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
                 tr.seeded = False
                 tr.kf.prior = None  # a new segment: the smoother does not link it to the old track
