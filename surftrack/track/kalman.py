@@ -76,8 +76,8 @@ class KalmanConfig:
     * ``coast_tau_s = 0.1``: while a part goes unmeasured (every estimate gated out, no silhouette fit),
       its velocities decay with this time constant instead of carrying it on: a track that has started to
       drift (a jaw turning away at 3-4 deg a frame while its estimates are rejected) would otherwise drift
-      faster, and the smoother then spreads the jump back to the truth over the path. Held-out clips:
-      ADD-10 of the wrist and jaws +5 to +7 points, path ratio mean 1.93 -> 1.40 (docs/decisions.md).
+      faster, and the smoother then spreads the jump back to the truth over the path. 13 held-out runs:
+      ADD-10 +3 to +5 points per part on average; path ratio mean 1.93 -> 1.40 (docs/decisions.md).
       0: constant velocity throughout.
     """
 
