@@ -75,9 +75,10 @@ class KalmanConfig:
       the shaft's roll) come in short runs, a real fast move persists.
     * ``coast_tau_s = 0.1``: while a part goes unmeasured (every estimate gated out, no silhouette fit),
       its velocities decay with this time constant instead of carrying it on: a track that has started to
-      drift (a jaw turning away at 3-4 deg a frame while its estimates are rejected) would otherwise drift
-      faster, and the smoother then spreads the jump back to the truth over the path. 13 held-out runs:
-      ADD-10 +3 to +5 points per part on average; path ratio mean 1.93 -> 1.40 (docs/decisions.md).
+      drift (a jaw turning away at 7-8 deg a frame while its estimates are rejected) would otherwise go on
+      drifting at that rate, and the smoother then spreads the jump back to the truth over the path.
+      13 held-out runs: ADD-10 +3 to +5 points per part on average; path ratio mean 1.93 -> 1.40
+      (docs/decisions.md).
       0: constant velocity throughout.
     """
 
