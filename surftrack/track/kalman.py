@@ -52,6 +52,10 @@ from surftrack.geometry.transforms import skew, so3_exp, so3_log
 CHI2_6DOF_999 = 22.46
 
 
+#: KalmanConfig settings for which 0 switches the behaviour off (every other one must be positive).
+_ZERO_MEANS_OFF = frozenset({"coast_tau_s"})
+
+
 @dataclass
 class KalmanConfig:
     """Noise settings; defaults aimed at da Vinci instruments seen by an endoscope at ~30 fps.
@@ -99,7 +103,7 @@ class KalmanConfig:
                     or (kind is int and not float(v).is_integer())):
                 raise ValueError(f"{f.name} must be {'an integer' if kind is int else 'a finite number'}, got {v!r}")
             setattr(self, f.name, kind(v))
-            if f.name == "coast_tau_s":  # 0: off
+            if f.name in _ZERO_MEANS_OFF:
                 if v < 0:
                     raise ValueError(f"{f.name} must be >= 0 (0: off), got {v}")
             elif (v < 1) if kind is int else (v <= 0):
