@@ -1,6 +1,8 @@
 """Pose estimation: the batched P3P, the hypothesis / scoring / refinement solver on correspondence
 distributions built from RENDERED object coordinates (noise + 30 % outliers), and a tiny model end to end."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +13,8 @@ from surftrack.instruments import load_instrument
 from surftrack.model.config import ModelCfg
 from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
 from surftrack.pose import PRESETS, PoseEstimator, p3p, p4p, solve_field, solve_quartic
+from surftrack.pose import scoring
+from surftrack.pose.scoring import score_poses
 from surftrack.pose.synthetic import rendered_problem
 from surftrack.pose.views import merge_views, view_offsets
 
@@ -124,6 +128,29 @@ def test_prior_pose_is_kept_only_when_it_scores_best(lnd):
     assert wrong.prior_won is False and rotation_angle_deg(wrong.R, pb.R) < 1.5
     alone = solve_field(pb.field, pb.bank, pb.K_grid, pb.box_side, preset, torch.Generator().manual_seed(0))
     assert alone.prior_won is None
+
+
+def test_a_pose_touching_the_lens_does_not_outscore_the_true_one(lnd, monkeypatch):
+    """Moving the part along the ray of one of its visible points until that point is 0.1 mm from the
+    lens keeps the point on its pixel with a million times its projected area; its weight is capped, so
+    the pose scores below the true one (uncapped it scored 50x the true pose on a real shaft crop)."""
+    preset = PRESETS["fast"]
+    pb = _rendered(lnd, "shaft", 1, preset)
+    K = pb.K_grid.double()
+    X = pb.bank.points.double() @ torch.as_tensor(pb.R).T + torch.as_tensor(pb.t)
+    uv = X @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    facing = (pb.bank.normals.double() @ torch.as_tensor(pb.R).T * X).sum(1) < 0
+    centre = (pb.field.g - 1) / 2.0
+    i = int(torch.argmin(torch.where(facing, (u - centre) ** 2 + (v - centre) ** 2, torch.inf)))
+    t_near = pb.t - X[i].numpy() * (1.0 - 0.1 / float(X[i, 2]))
+    scores = score_poses(torch.as_tensor(np.stack([pb.R, pb.R])), torch.as_tensor(np.stack([pb.t, t_near])),
+                         pb.field, pb.bank, pb.K_grid, preset)
+    assert float(scores[1]) < float(scores[0]), scores
+    monkeypatch.setattr(scoring, "SAMPLE_AREA_CAP", math.inf)  # the case the cap is for
+    uncapped = score_poses(torch.as_tensor(np.stack([pb.R, pb.R])), torch.as_tensor(np.stack([pb.t, t_near])),
+                           pb.field, pb.bank, pb.K_grid, preset)
+    assert float(uncapped[1]) > 10 * float(uncapped[0]), uncapped
 
 
 @pytest.fixture(scope="module")
