@@ -8,6 +8,7 @@ from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import JointState, load_instrument
 from surftrack.render import Renderer
 from surftrack.render.scene import add_instrument
+from surftrack.track import region
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionTracker
 
 W, H = 320, 256
@@ -112,3 +113,19 @@ def test_region_fit_of_a_free_part_and_without_colours(scene):
     assert lateral(res.t) < 0.4 * lateral(tp), (lateral(tp), lateral(res.t))
     rot = lambda R: np.degrees(np.linalg.norm(so3_log(truth["wrist"][0].T @ R)))  # noqa: E731
     assert rot(res.R) < 0.6 * rot(Rp), (rot(Rp), rot(res.R))
+
+
+def test_contour_points_nearer_than_the_near_limit_are_not_measured(scene, monkeypatch):
+    """Lines at points within ``NEAR_MM`` of the lens are left out (their projection's Jacobian, ~1 / z^2,
+    swamped the rest and made the normal equations singular): with the limit beyond the scene's depth
+    (55 mm) nothing is measured; at its default the same frame is."""
+    lnd, image, truth, _ = scene
+    rt = _tracker(lnd)
+    R, t = truth["wrist"]
+    contours, masks = rt.contours({"wrist": (R, t)})
+    rt.learn(image, "lnd", masks["lnd"])
+    prior = np.diag([4.0] * 3 + [np.radians(5) ** 2] * 3)
+    assert "wrist" in rt.measure(image, contours, PoseModel("wrist", R, t), prior)
+    monkeypatch.setattr(region, "NEAR_MM", 100.0)
+    assert rt.measure(image, contours, PoseModel("wrist", R, t), prior) == {}
+    rt.release()

@@ -164,6 +164,19 @@ class ColorModel:
         return f / (f + b)
 
 
+#: contour points nearer the lens than this (mm) are not measured: nothing is in focus there, and their
+#: projection's Jacobian (~1 / z^2) would swamp every other line (a drifted pose grazing the lens made the
+#: normal equations singular)
+NEAR_MM = 5.0
+
+
+def _in_front(pose: tuple[np.ndarray, np.ndarray], xyz: np.ndarray) -> np.ndarray:
+    """Which model points ``xyz`` (N, 3) mm lie at least ``NEAR_MM`` in front of the camera under ``pose``
+    (R, t)."""
+    R, t = pose
+    return (np.asarray(xyz) @ np.asarray(R)[2] + float(t[2])) >= NEAR_MM
+
+
 def _sample(image: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Colours (..., 3) at pixel positions ``pts`` (..., 2) (nearest pixel) and whether each is inside."""
     H, W = image.shape[:2]
@@ -308,6 +321,7 @@ class RegionTracker:
                 c = contours[n]
                 uv, Jp = project_pose_jacobian(self.K, *poses[n], c.xyz)
                 mu, var, valid, _ = self._lines(image, self.colors[self.groups[n]], uv, c.normal, scale)
+                valid &= _in_front(poses[n], c.xyz)
                 rows.append(np.einsum("ni,nij,jk->nk", c.normal, Jp, D[n])[valid])
                 res.append((mu - c.edge_offset)[valid])
                 wts.append(1.0 / np.maximum(var[valid], cfg.var_floor_px))
@@ -319,7 +333,10 @@ class RegionTracker:
             w = w / (1.0 + (r / (cfg.robust_px * scale)) ** 2)
             H = (a * w[:, None]).T @ a / cfg.inflate
             g_lines = a.T @ (w * r) / cfg.inflate
-            x = x + np.linalg.solve(H + info0, g_lines - info0 @ x)
+            try:
+                x = x + np.linalg.solve(H + info0, g_lines - info0 @ x)
+            except np.linalg.LinAlgError:
+                return {}  # a degenerate system (lines along one direction only): no measurement this frame
         model.solution = x
         # The pose reported is the MAP estimate, its covariance the lines' alone: where the lines pin a
         # direction (what the filter fuses, RegionResult.observed) their information dwarfs the
@@ -337,6 +354,7 @@ class RegionTracker:
             c = contours[n]
             uv, _ = project_pose_jacobian(self.K, *poses[n], c.xyz)
             _, _, valid, pf = self._lines(image, self.colors[self.groups[n]], uv, c.normal, cfg.scales[-1])
+            valid &= _in_front(poses[n], c.xyz)
             # sample s = 0 is the last pixel inside the outline
             agree = np.where(self._s[None, :] <= 0, pf > 0.5, pf < 0.5)[valid]
             cov = D[n] @ cov_x @ D[n].T
