@@ -132,7 +132,7 @@ def test_prior_pose_is_kept_only_when_it_scores_best(lnd):
 
 def test_a_pose_touching_the_lens_does_not_outscore_the_true_one(lnd, monkeypatch):
     """Moving the part along the ray of one of its visible points until that point is 0.1 mm from the
-    lens keeps the point on its pixel with a million times its projected area; its weight is capped, so
+    lens keeps the point on its pixel with some 10^5 times its projected area; its weight is capped, so
     the pose scores below the true one (uncapped it scored 50x the true pose on a real shaft crop)."""
     preset = PRESETS["fast"]
     pb = _rendered(lnd, "shaft", 1, preset)

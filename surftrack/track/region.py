@@ -336,7 +336,7 @@ class RegionTracker:
             try:
                 x = x + np.linalg.solve(H + info0, g_lines - info0 @ x)
             except np.linalg.LinAlgError:
-                return {}  # a degenerate system (lines along one direction only): no measurement this frame
+                return {}  # numerically singular (lines of wildly different weights): no measurement this frame
         model.solution = x
         # The pose reported is the MAP estimate, its covariance the lines' alone: where the lines pin a
         # direction (what the filter fuses, RegionResult.observed) their information dwarfs the
