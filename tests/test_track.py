@@ -244,6 +244,42 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
     assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.occluded for s in states)
 
 
+@pytest.mark.parametrize("kinematic", [True, False])
+def test_a_part_its_own_estimate_misses_is_measured_through_the_instrument_fit(clip, lnd_parts, tiny_ckpt,
+                                                                               kinematic):
+    """The network sees nothing of the shaft (its own estimate scores -1 with no inliers: a shaft cut by
+    the image's edge) while the wrist and jaws are seen: with the instrument fit the shaft's fitted pose
+    is a measurement like any other and the shaft stays at the truth; without it the shaft is only held."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    n = 4
+    i = max(range(1, len(frames) - n), key=lambda k: min(gt.pose(j, tid)[2] for tid in lnd_parts.values()
+                                                        for j in range(k - 1, k + n)))
+
+    class Unseen(_GroundTruthEstimator):
+        def estimate(self, image, boxes, K, priors=None):
+            out = super().estimate(image, boxes, K, priors)
+            return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part == "shaft" else r for r in out]
+
+    est = Unseen(model, gt, lnd_parts, 0.0)
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(kinematic=kinematic, keyframe_every=1, region=False))
+    for p in model.parts:
+        tracker.set_pose(lnd_parts[p.name], *gt.pose(i - 1, lnd_parts[p.name])[:2], (i - 1) / 10.0)
+    est.frame = i - 1
+    tracker.step(frames[i - 1], (i - 1) / 10.0, None)
+    for j in range(i, i + n):
+        est.frame = j
+        shaft = next(s for s in tracker.step(frames[j], j / 10.0, None) if s.spec.part == "shaft")
+        if kinematic:
+            assert shaft.status == "keyframe" and shaft.info.kinematic, (j, shaft.status)
+            assert pose_distance(shaft.R, shaft.t, *gt.pose(j, lnd_parts["shaft"])[:2])[1] < 0.5
+        else:
+            assert shaft.status == "predicted", (j, shaft.status)
+
+
 def test_a_shaft_filling_the_image_edge_is_kept_while_its_detection_agrees(clip, lnd_parts, tiny_ckpt):
     """Most of a long shaft's projected box lies outside the image while the shaft fills the image's
     edge: a detection that agrees with the track keeps it (its filter carries on: no restart, no

@@ -49,8 +49,9 @@ class TrackConfig:
     3D: they were lifted from that pose and repeat its error. (Fusing that shared error as if it were
     independent still shrinks the covariance each frame; this bounds the overconfidence, it does not
     remove it.) Estimator poses are fused with ``est_pos_std_mm`` along the line of sight,
-    ``est_lateral_std_mm`` across it and ``est_rot_std_deg``; an initialisation needs
-    ``init_min_inliers`` and a score >= ``init_min_score``.
+    ``est_lateral_std_mm`` across it and ``est_rot_std_deg``; a part's own estimate counts (as a
+    measurement or an initialisation) with ``init_min_inliers`` and a score >= ``init_min_score``, a pose
+    from the instrument fit (``kinematic``; made only when the anchor was seen) without them.
 
     ``region``: measure parts between keyframes by their silhouettes (:mod:`surftrack.track.region`:
     colour statistics along lines normal to the rendered outline, one fit per instrument through its

@@ -669,7 +669,11 @@ class Tracker:
             results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
                                        self.estimator.model.parts, self._kinematic, self.instruments)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-        good_results = [res.ok and res.n_inliers >= cfg.init_min_inliers and res.score >= cfg.init_min_score
+        # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
+        # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
+        # behind the other tool, and the filter's gate still weighs it against the track
+        good_results = [res.ok and (res.kinematic or (res.n_inliers >= cfg.init_min_inliers
+                                                      and res.score >= cfg.init_min_score))
                         for res in results]
         # with the kinematic fit, the poses of one instrument's parts on a keyframe come from one joint fit:
         # one measurement of its state, not one per part, so each part's share of it is that much weaker
