@@ -671,7 +671,7 @@ class Tracker:
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
         # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
         # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
-        # behind the other tool, and the filter's gate still weighs it against the track
+        # behind the other tool (a tracked part's filter still gates it)
         good_results = [res.ok and (res.kinematic or (res.n_inliers >= cfg.init_min_inliers
                                                       and res.score >= cfg.init_min_score))
                         for res in results]
