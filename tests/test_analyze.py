@@ -203,3 +203,37 @@ def test_min_confidence_leaves_doubted_frames_out(tmp_path, capsys):
     assert analyze_mcap(alternate)["instruments"]["lnd.0"]["tool_tip"]["path_length_mm"] == pytest.approx(5.0 * (N - 1))
     assert main(["analyze", str(path), "--min-confidence", "0.5", "--png", str(tmp_path / "a.png")]) == 0
     assert "confidence >= 0.5" in capsys.readouterr().out
+
+
+def test_a_restart_or_fresh_start_is_no_motion(tmp_path):
+    """A track 30 mm off that the estimator restarts at frame 8 (status keyframe, ``restarted``), and one
+    dropped and started again from an estimate at frame 15 (``estimator: reappearance``) without a lost frame
+    logged between: neither jump is counted, for the part nor for its instrument's tool tip; the same jumps
+    on a plain keyframe are."""
+    path = tmp_path / "restart.mcap"
+    v = np.array([0.0, 30.0, 40.0])  # 50 mm/s: 5 mm a step
+    extra = {8: {"estimator": "box disagreement", "restarted": True}, 15: {"estimator": "reappearance"}}
+    with TrackWriter(path) as w:
+        for i in range(N):
+            t = i / FPS
+            p = np.array([0.0, 0.0, 60.0]) + v * t + (np.array([30.0, 0.0, 0.0]) if i < 8 else 0.0) \
+                + (np.array([0.0, 0.0, 20.0]) if i >= 15 else 0.0)
+            w.pose("lnd.0.jaw", t, np.eye(3), p)
+            w.status(t, "lnd.0.jaw", "keyframe" if i in extra else "tracking", 0.9, extra.get(i, {"estimator": "cadence"}))
+            w.joint_states(t, "lnd.0", ["roll"], [0.0])
+            w.tool_tip(t, "lnd.0", np.eye(3), p + 5.0)
+    s = analyze_mcap(path)
+    jaw, tip = s["parts"]["lnd.0.jaw"], s["instruments"]["lnd.0"]["tool_tip"]
+    assert jaw["path_length_mm"] == pytest.approx(5.0 * (N - 1 - 2), rel=1e-9)
+    assert jaw["max_speed_mm_s"] == pytest.approx(50.0, rel=1e-9)
+    assert tip["path_length_mm"] == pytest.approx(5.0 * (N - 1 - 2), rel=1e-9)
+    assert jaw["rms_jerk_mm_s3"] == pytest.approx(0.0, abs=1e-6)  # no jerk window spans a jump
+
+    plain = tmp_path / "plain.mcap"
+    with TrackWriter(plain) as w:
+        for i in range(N):
+            t = i / FPS
+            p = np.array([0.0, 0.0, 60.0]) + v * t + (np.array([30.0, 0.0, 0.0]) if i < 8 else 0.0)
+            w.pose("lnd.0.jaw", t, np.eye(3), p)
+            w.status(t, "lnd.0.jaw", "keyframe", 0.9, {"estimator": "cadence"})
+    assert analyze_mcap(plain)["parts"]["lnd.0.jaw"]["path_length_mm"] > 5.0 * (N - 2) + 25.0

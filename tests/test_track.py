@@ -866,6 +866,41 @@ def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):
     assert dropped["frames"] == exact["frames"] - 1 and dropped["path_gt_mm"] < exact["path_gt_mm"]
 
 
+def test_a_restarted_track_s_jump_is_no_motion_in_the_score(clip, lnd_parts):
+    """TrackScore: a jaw tracked 20 mm off until the estimator restarts its track (``restarted``) has the
+    true path over the steps counted, for the part and the tool tip; the same jump on a plain keyframe
+    counts as motion."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track import Diagnostics, PartState
+
+    lnd = load_instrument("lnd")
+    gt = ClipGroundTruth(clip / "gt.json")
+    specs = [PartSpec(tid, k + 1, lnd.name, 0, p, lnd.parts[p].mesh.vertices, lnd.parts[p].mesh.faces)
+             for k, (p, tid) in enumerate(sorted(lnd_parts.items()))]
+    n = len(_frames(clip))
+    seen = [i for i in range(n) if gt.pose(i, lnd_parts["jaw_left"])[2] >= 20]  # a small clip
+    k = seen[len(seen) // 2]
+
+    def score(restarted):
+        s = TrackScore(gt, min_visible_px=20, instruments={lnd.name: lnd})
+        for i in range(n):
+            states = []
+            for sp in specs:
+                R, t, _ = gt.pose(i, sp.track_id)
+                info = Diagnostics()
+                if sp.part == "jaw_left" and i < k:
+                    t = t + [20.0, 0.0, 0.0]
+                elif sp.part == "jaw_left" and i == k:
+                    info = Diagnostics(estimator="box disagreement", restarted=restarted)
+                states.append(PartState(sp, "keyframe", 1.0, R, t, None, info))
+            s.add_frame(i, i / 10.0, states)
+        return s.summary()[f"{lnd.name}.0.jaw_left"], s.tip_summary()[f"{lnd.name}.0"]
+
+    (jaw, tip), (jaw_plain, tip_plain) = score(True), score(False)
+    assert jaw["path_ratio"] == pytest.approx(1.0) and tip["path_ratio"] == pytest.approx(1.0)
+    assert jaw_plain["path_mm"] > jaw["path_mm"] + 15.0 and tip_plain["path_mm"] > tip["path_mm"] + 5.0
+
+
 def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():
     """``keyframe_max_s`` lowers ``keyframe_every`` to that much video where it is tighter; 0 keeps the
     frames; the main command's ``--keyframe-every`` means frames."""

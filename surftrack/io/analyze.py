@@ -26,7 +26,10 @@ tracking benchmark the default run's paths came out 1.0-1.9x the truth over the 
 
 Motion is measured only between CONSECUTIVE tracked frames of a part (frames are the union of its pose
 and status times, so a logged "lost" frame, or a pose with a non-tracking status, breaks the chain and
-no distance is counted across it): path length = sum of the step lengths, mean speed = path length /
+no distance is counted across it), and none into a frame where its track restarted or started afresh
+(:func:`~surftrack.track.status.starts_anew`, from the status's diagnostics; for the tool tip, any of its
+instrument's parts): that jump is the track's correction, not motion (on the tracking benchmark's
+held-out clips such jumps made most of the paths' excess over the truth). Path length = sum of the step lengths, mean speed = path length /
 the summed duration of those steps, max speed = the largest step length / step duration, RMS jerk = the
 root mean square of the central third difference over 5 consecutive tracked frames (mm/s^3; a smoothness
 figure of skill assessment). ``position_std_mm``: the mean over tracked frames of the pose's 3D position
@@ -56,7 +59,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.writer import MCAP0_MAGIC as MCAP_MAGIC
 
-from surftrack.track.status import POSED
+from surftrack.track.status import POSED, starts_anew
 
 __all__ = ["analyze_mcap", "format_analysis", "plot_analysis"]
 
@@ -93,12 +96,14 @@ def _read(path: Path) -> list[tuple[str, str, int, dict]]:
 
 
 def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[int, bool],
-            speed_std: dict[int, float] | None = None) -> dict:
+            speed_std: dict[int, float] | None = None, fresh: set[int] | None = None) -> dict:
     """Path length, speeds and jerk over consecutive tracked frames, and their uncertainty bounds where
-    ``speed_std`` (frame -> mm/s) is known (see the module docstring)."""
+    ``speed_std`` (frame -> mm/s) is known (see the module docstring); no step leads into a frame of
+    ``fresh`` (a restarted or newly started track)."""
+    fresh = fresh or set()
     steps_t, steps_v, steps_sd, length, duration = [], [], [], 0.0, 0.0
     for a, b in zip(times_ns[:-1], times_ns[1:]):
-        if not (tracked[a] and tracked[b]) or b <= a:
+        if not (tracked[a] and tracked[b]) or b <= a or b in fresh:
             continue
         d = float(np.linalg.norm(xyz_mm[b] - xyz_mm[a]))
         dt = (b - a) * 1e-9
@@ -113,7 +118,8 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     for k in range(2, len(times_ns) - 2):
         win = times_ns[k - 2:k + 3]
         steps = np.diff(win)
-        if not all(tracked[n] for n in win) or steps.min() <= 0 or steps.max() > 1.1 * steps.min():
+        if (not all(tracked[n] for n in win) or any(n in fresh for n in win[1:])
+                or steps.min() <= 0 or steps.max() > 1.1 * steps.min()):
             continue  # the difference needs evenly spaced frames (none missing)
         dt = (win[-1] - win[0]) * 1e-9 / 4.0
         x = [xyz_mm[n] for n in win]
@@ -181,6 +187,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     joints_std: dict[str, list[dict[str, float]]] = {}
     tips: dict[str, dict[int, np.ndarray]] = {}
     tip_std: dict[str, dict[int, tuple[float, float]]] = {}  # (position sd mm, speed sd mm/s) by frame
+    fresh: dict[str, set[int]] = {}  # frames whose pose does not continue the frame before's (starts_anew)
     messages = _read(path)
     try:
         for topic, schema, ns, msg in messages:
@@ -189,6 +196,8 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                 poses.setdefault(m.group(1), {})[ns] = 1000.0 * np.array([p["x"], p["y"], p["z"]], dtype=float)
             elif (m := _STATUS.match(topic)) and schema == "surftrack.PartStatus":
                 status.setdefault(m.group(1), {})[ns] = str(msg["status"])
+                if starts_anew(msg["status"], msg.get("extra") or {}):
+                    fresh.setdefault(m.group(1), set()).add(ns)
                 if msg.get("confidence") is not None:
                     confidence.setdefault(m.group(1), {})[ns] = float(msg["confidence"])
                 sd = (msg.get("extra") or {}).get("position_std_mm")
@@ -221,7 +230,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         tracked = {ns: ns in xyz and (ns not in st or st[ns] in tracked_ok)
                    and (min_confidence <= 0.0 or conf.get(ns, -1.0) >= min_confidence) for ns in frames}
         pose_ns = sorted(xyz)
-        motion = _motion(frames, xyz, tracked, speed_std.get(name) if name in speed_std else None)
+        motion = _motion(frames, xyz, tracked, speed_std.get(name) if name in speed_std else None, fresh.get(name))
         arr = np.array([xyz[ns] for ns in pose_ns]).reshape(-1, 3)
         parts[name] = {
             "pose_frames": len(pose_ns),
@@ -263,7 +272,11 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                            if part.startswith(name + ".") and "." not in part[len(name) + 1:]]
                 tip_ok = {ns: ok and any(ns in c for c in members)
                           and all(c[ns] >= min_confidence for c in members if ns in c) for ns, ok in tip_ok.items()}
-            tip_motion = _motion(tip_frames, tip_xyz, tip_ok, {ns: v[1] for ns, v in tsd.items()} if tsd else None)
+            # a restart or fresh start of any of its parts moves the tip without motion
+            tip_fresh = set().union(*(f for part, f in fresh.items() if part.startswith(name + ".")
+                                      and "." not in part[len(name) + 1:]))
+            tip_motion = _motion(tip_frames, tip_xyz, tip_ok, {ns: v[1] for ns, v in tsd.items()} if tsd else None,
+                                 tip_fresh)
             tip_counted = [ns for ns in tip if tip_ok[ns]]
         instruments[name] = {
             "tool_tip": None if tip_motion is None else {

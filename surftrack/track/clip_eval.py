@@ -7,7 +7,9 @@ of frames with a pose while the part is visible, and jitter: the mean frame-to-f
 the ground truth's (mm, deg), over consecutive frames that both have a pose.
 
 Kinematics: path length (sum of the frame-to-frame translation of the part's origin) estimated and true
-over the same pairs of consecutive visible frames with a pose, and the speed error: the median over
+over the same pairs of consecutive visible frames with a pose, the second continuing the first's track
+(not a restart or a fresh start, :func:`~surftrack.track.status.starts_anew`: the jump of a corrected
+track is no motion; ``surftrack analyze`` counts alike), and the speed error: the median over
 those pairs of |estimated - true speed|, relative to the median true speed. Given the instruments, the
 same for each instrument's tool tip (:meth:`~surftrack.instruments.Instrument.tool_tip`, between the jaw
 tips), from the tracked part poses (:meth:`TrackScore.tip_summary`). The path length again over the
@@ -30,6 +32,7 @@ from surftrack.eval import add, diameter_bbox_diagonal, re, te
 from surftrack.geometry import se3
 from surftrack.instruments import Instrument
 from surftrack.track.flow import pose_distance
+from surftrack.track.status import starts_anew
 from surftrack.track.tracker import PartState
 
 
@@ -89,7 +92,7 @@ class TrackScore:
             row["te"].append(te(s.t, tg))
             row["add"].append(add(s.R, s.t, Rg, tg, self._pts[name]))
             row["conf"].append(s.confidence)
-            if prev is not None and prev[0] == index - 1 and prev[1] is not None:
+            if prev is not None and prev[0] == index - 1 and prev[1] is not None and not starts_anew(s.status, s.info.as_dict()):
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
                 gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
                 row["jit_r"].append(dr - gr)
@@ -123,7 +126,7 @@ class TrackScore:
             gt_tip = inst.tool_tip({p: se3(R, t) for p, (R, t, _) in gt.items()})[1]
             rec["err"].append(float(np.linalg.norm(est_tip - gt_tip)))
             prev = rec["prev"]
-            if prev is not None and prev[0] == index - 1:
+            if prev is not None and prev[0] == index - 1 and not any(starts_anew(s.status, s.info.as_dict()) for s in group):
                 rec["step_est"].append((float(np.linalg.norm(est_tip - prev[1])), time_s - prev[3]))
                 rec["step_gt"].append(float(np.linalg.norm(gt_tip - prev[2])))
             rec["prev"] = (index, est_tip, gt_tip, time_s)

@@ -4,8 +4,10 @@ the diagnostics that come with it."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 
 class Status(str, Enum):
@@ -38,6 +40,19 @@ class Status(str, Enum):
 POSED = frozenset({Status.KEYFRAME, Status.TRACKING, Status.PREDICTED})
 #: Statuses whose pose was measured this frame (not only carried by the filter).
 MEASURED = frozenset({Status.KEYFRAME, Status.TRACKING})
+#: Why the estimator ran (``Diagnostics.estimator``) when its pose starts a part's track afresh.
+FRESH_STARTS = frozenset({"init", "reappearance"})
+
+
+def starts_anew(status: str, info: Mapping[str, Any]) -> bool:
+    """Whether a part's pose on a frame does not continue its pose on the frame before: the track restarted
+    at an estimate its filter had refused (``restarted``: the track was wrong), started again from an
+    estimate after it was dropped, or was set from outside. The step into such a frame is a correction or
+    a new track, not motion: kinematics count no distance across it. ``status``: the frame's status (a
+    :class:`Status` or its value); ``info``: its diagnostics (:meth:`Diagnostics.as_dict`, or the MCAP's
+    status ``extra``)."""
+    return str(status) == Status.KEYFRAME.value and (
+        bool(info.get("restarted")) or info.get("estimator") in FRESH_STARTS or info.get("source") == "set_pose")
 
 
 @dataclass
