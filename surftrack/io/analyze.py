@@ -29,8 +29,9 @@ and status times, so a logged "lost" frame, or a pose with a non-tracking status
 no distance is counted across it), and none into a frame where its track restarted or started afresh
 (:func:`~surftrack.track.status.starts_anew`, from the status's diagnostics; for the tool tip, any of its
 instrument's parts): that jump is the track's correction, not motion (on the tracking benchmark's
-held-out clips such jumps made most of the paths' excess over the truth). Path length = sum of the step lengths, mean speed = path length /
-the summed duration of those steps, max speed = the largest step length / step duration, RMS jerk = the
+held-out clips such jumps made 80 % of the paths' excess over the truth,
+docs/results/2026-12-04-path-jumps.md). Path length = sum of the step lengths, mean speed = path length
+/ the summed duration of those steps, max speed = the largest step length / step duration, RMS jerk = the
 root mean square of the central third difference over 5 consecutive tracked frames (mm/s^3; a smoothness
 figure of skill assessment). ``position_std_mm``: the mean over tracked frames of the pose's 3D position
 standard deviation, from the filter's covariance the tracker writes in the status (None in files
