@@ -228,6 +228,7 @@ def test_a_restart_or_fresh_start_is_no_motion(tmp_path):
     assert jaw["max_speed_mm_s"] == pytest.approx(50.0, rel=1e-9)
     assert tip["path_length_mm"] == pytest.approx(5.0 * (N - 1 - 2), rel=1e-9)
     assert jaw["rms_jerk_mm_s3"] == pytest.approx(0.0, abs=1e-6)  # no jerk window spans a jump
+    assert jaw["track_starts"] == 2 and "starts" in format_analysis(s)  # the two corrections are reported
 
     plain = tmp_path / "plain.mcap"
     with TrackWriter(plain) as w:

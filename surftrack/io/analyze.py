@@ -158,7 +158,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
     """Summary of a TrackWriter MCAP file (frames counted as the module docstring says)::
 
         {"file": str, "min_confidence": float,
-         "parts": {name: {"pose_frames", "tracked_frames", "t_start_s", "t_end_s", "span_s",
+         "parts": {name: {"pose_frames", "tracked_frames", "track_starts", "t_start_s", "t_end_s", "span_s",
                           "path_length_mm", "mean_speed_mm_s", "max_speed_mm_s", "rms_jerk_mm_s3",
                           "position_std_mm", "path_length_sd_bound_mm", "mean_speed_sd_bound_mm_s",
                           "series": {"time_s", "x_mm", "y_mm", "z_mm", "tracked",
@@ -170,7 +170,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
                                              "position_std_mm"} or None,
                                 "series": {"time_s", "<joint>_deg": [...]}}}}
 
-    Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
+    ``track_starts``: frames where the part's track started, restarted or started again
+    (:func:`~surftrack.track.status.starts_anew`; 1 for one unbroken track, more for each correction whose
+    jump the path leaves out). Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
     tracked frames; series are plain lists (NaN where a joint has no position). A missing, corrupt or
     non-MCAP file raises ``ValueError`` with a one-line message naming it.
     """
@@ -236,6 +238,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         parts[name] = {
             "pose_frames": len(pose_ns),
             "tracked_frames": sum(tracked.values()),
+            "track_starts": len(fresh.get(name, ())),
             "t_start_s": pose_ns[0] * 1e-9 if pose_ns else None,
             "t_end_s": pose_ns[-1] * 1e-9 if pose_ns else None,
             "span_s": (pose_ns[-1] - pose_ns[0]) * 1e-9 if pose_ns else 0.0,
@@ -312,11 +315,11 @@ def format_analysis(summary: dict) -> str:
         lines.append("no part poses")
     else:
         w = max(4, *(len(n) for n in parts))
-        lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'start_s':>8}  {'end_s':>8}  "
+        lines.append(f"{'part':<{w}}  {'frames':>6}  {'tracked':>7}  {'starts':>6}  {'start_s':>8}  {'end_s':>8}  "
                      f"{'path_mm':>9}  {'path_sd<=':>9}  {'mean_mm/s':>9}  {'max_mm/s':>9}  {'jerk_mm/s3':>10}  "
                      f"{'pos_std_mm':>10}")
         for n, p in parts.items():
-            lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  "
+            lines.append(f"{n:<{w}}  {p['pose_frames']:>6}  {p['tracked_frames']:>7}  {p.get('track_starts', 0):>6}  "
                          f"{_num(p['t_start_s'], '8.3f'):>8}  {_num(p['t_end_s'], '8.3f'):>8}  "
                          f"{p['path_length_mm']:>9.1f}  {_num(p.get('path_length_sd_bound_mm'), '9.1f'):>9}  "
                          f"{_num(p['mean_speed_mm_s'], '9.1f'):>9}  "
