@@ -219,7 +219,8 @@ def test_a_restart_or_fresh_start_is_no_motion(tmp_path):
             p = np.array([0.0, 0.0, 60.0]) + v * t + (np.array([30.0, 0.0, 0.0]) if i < 8 else 0.0) \
                 + (np.array([0.0, 0.0, 20.0]) if i >= 15 else 0.0)
             w.pose("lnd.0.jaw", t, np.eye(3), p)
-            w.status(t, "lnd.0.jaw", "keyframe" if i in extra else "tracking", 0.9, extra.get(i, {"estimator": "cadence"}))
+            w.status(t, "lnd.0.jaw", "keyframe" if i in extra else "tracking", 0.9,
+                     extra.get(i, {"estimator": "cadence"}))
             w.joint_states(t, "lnd.0", ["roll"], [0.0])
             w.tool_tip(t, "lnd.0", np.eye(3), p + 5.0)
     s = analyze_mcap(path)

@@ -172,9 +172,9 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
 
     ``track_starts``: frames where the part's track started, restarted or started again
     (:func:`~surftrack.track.status.starts_anew`; 1 for one unbroken track, more for each correction whose
-    jump the path leaves out). Times are the messages' log times in seconds; speeds are None when a part has no two consecutive
-    tracked frames; series are plain lists (NaN where a joint has no position). A missing, corrupt or
-    non-MCAP file raises ``ValueError`` with a one-line message naming it.
+    jump the path leaves out). Times are the messages' log times in seconds; speeds are None when a part
+    has no two consecutive tracked frames; series are plain lists (NaN where a joint has no position). A
+    missing, corrupt or non-MCAP file raises ``ValueError`` with a one-line message naming it.
     """
     path = Path(path)
     min_confidence = float(min_confidence)

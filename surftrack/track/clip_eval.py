@@ -92,7 +92,8 @@ class TrackScore:
             row["te"].append(te(s.t, tg))
             row["add"].append(add(s.R, s.t, Rg, tg, self._pts[name]))
             row["conf"].append(s.confidence)
-            if prev is not None and prev[0] == index - 1 and prev[1] is not None and not starts_anew(s.status, s.info.as_dict()):
+            if (prev is not None and prev[0] == index - 1 and prev[1] is not None
+                    and not starts_anew(s.status, s.info.as_dict())):
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
                 gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
                 row["jit_r"].append(dr - gr)
@@ -126,7 +127,8 @@ class TrackScore:
             gt_tip = inst.tool_tip({p: se3(R, t) for p, (R, t, _) in gt.items()})[1]
             rec["err"].append(float(np.linalg.norm(est_tip - gt_tip)))
             prev = rec["prev"]
-            if prev is not None and prev[0] == index - 1 and not any(starts_anew(s.status, s.info.as_dict()) for s in group):
+            if prev is not None and prev[0] == index - 1 and not any(starts_anew(s.status, s.info.as_dict())
+                                                                     for s in group):
                 rec["step_est"].append((float(np.linalg.norm(est_tip - prev[1])), time_s - prev[3]))
                 rec["step_gt"].append(float(np.linalg.norm(gt_tip - prev[2])))
             rec["prev"] = (index, est_tip, gt_tip, time_s)
