@@ -139,6 +139,12 @@ def _motion(times_ns: list[int], xyz_mm: dict[int, np.ndarray], tracked: dict[in
     }
 
 
+def _is_part_of(part: str, instrument: str) -> bool:
+    """Whether the part topic name ``part`` is one of ``instrument``'s: "<instrument>.<part>", the part's
+    own name without dots."""
+    return part.startswith(instrument + ".") and "." not in part[len(instrument) + 1:]
+
+
 def _with_gaps(xyz_mm: dict[int, np.ndarray]) -> tuple[list[int], dict[int, np.ndarray], dict[int, bool]]:
     """(frames, positions, tracked) of a series logged only where it exists (the tool tip: frames with a
     fit): an untracked frame is inserted in every step longer than 1.5 x the median step, so that no
@@ -271,14 +277,11 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
         if tip:
             tip_frames, tip_xyz, tip_ok = _with_gaps(tip)  # gaps from the logged frames, before any is left out
             if min_confidence > 0.0:
-                # the instrument's parts: "<instrument>.<part>", the part's name without dots
-                members = [c for part, c in confidence.items()
-                           if part.startswith(name + ".") and "." not in part[len(name) + 1:]]
+                members = [c for part, c in confidence.items() if _is_part_of(part, name)]
                 tip_ok = {ns: ok and any(ns in c for c in members)
                           and all(c[ns] >= min_confidence for c in members if ns in c) for ns, ok in tip_ok.items()}
             # a restart or fresh start of any of its parts moves the tip without motion
-            tip_fresh = set().union(*(f for part, f in fresh.items() if part.startswith(name + ".")
-                                      and "." not in part[len(name) + 1:]))
+            tip_fresh = set().union(*(f for part, f in fresh.items() if _is_part_of(part, name)))
             tip_motion = _motion(tip_frames, tip_xyz, tip_ok, {ns: v[1] for ns, v in tsd.items()} if tsd else None,
                                  tip_fresh)
             tip_counted = [ns for ns in tip if tip_ok[ns]]
