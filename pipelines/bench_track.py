@@ -18,7 +18,8 @@ a second tool (``surftrack synth-clip``), keeps the boxes of the chosen parts, t
    kinematic fit unless ``--no-kinematic``);
 4. prints the three against the ground truth (:mod:`surftrack.track.clip_eval`): ADD-10 (SurgRIPE
    diameter, share of visible frames; no pose = miss), RE / TE medians, jitter, path length est / gt,
-   speed error, confidence calibration.
+   speed error, confidence calibration; for the default, where its paths' error comes from (right-track
+   steps, wrong-track steps, restart jumps left out).
 """
 
 from __future__ import annotations
@@ -76,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.paths import default_model_path
     from surftrack.synth.clip import ClipConfig, make_clip
     from surftrack.track import filter_steps, load_track_config
-    from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary, format_tip_summary
+    from surftrack.track.clip_eval import (ClipGroundTruth, TrackScore, format_path_causes, format_summary,
+                                           format_tip_summary)
     from surftrack.track.smoother import LagSmoother
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
@@ -168,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         print(format_tip_summary(causal.tip_summary()), end="")
         print("\nsmoothed tracking (default):\n" + format_summary(smoothed.summary()), end="")
         print(format_tip_summary(smoothed.tip_summary()), end="")
+        print("\nwhere the smoothed paths' error comes from:\n" + format_path_causes(smoothed.summary()), end="")
     return 0
 
 

@@ -899,6 +899,13 @@ def test_a_restarted_track_s_jump_is_no_motion_in_the_score(clip, lnd_parts):
     (jaw, tip), (jaw_plain, tip_plain) = score(True), score(False)
     assert jaw["path_ratio"] == pytest.approx(1.0) and tip["path_ratio"] == pytest.approx(1.0)
     assert jaw_plain["path_mm"] > jaw["path_mm"] + 15.0 and tip_plain["path_mm"] > tip["path_mm"] + 5.0
+    # where the error comes from: the one jump is reported, not counted; the 20 mm offset before it is a
+    # wrong track whose steps are the truth's (no excess); the right-track steps' path is the truth's
+    assert jaw["jumps"] == 1 and jaw["jump_mm"] == pytest.approx(20.0, abs=3.0) and jaw_plain["jumps"] == 0
+    assert abs(jaw["excess_wrong_mm"]) < 1e-6 and jaw["path_right_ratio"] == pytest.approx(1.0)
+    assert 0 < jaw["path_right_share_pct"] < 100 and jaw_plain["excess_wrong_mm"] > 15.0
+    from surftrack.track.clip_eval import format_path_causes
+    assert f"| {lnd.name}.0.jaw_left | 1.00 |" in format_path_causes({f"{lnd.name}.0.jaw_left": jaw})
 
 
 def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():

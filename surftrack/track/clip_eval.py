@@ -14,7 +14,9 @@ those pairs of |estimated - true speed|, relative to the median true speed. Give
 same for each instrument's tool tip (:meth:`~surftrack.instruments.Instrument.tool_tip`, between the jaw
 tips), from the tracked part poses (:meth:`TrackScore.tip_summary`). The path length again over the
 steps both of whose frames have confidence >= 0.5 (what ``surftrack analyze --min-confidence 0.5``
-counts), with the share of steps that leaves. Confidence calibration:
+counts), with the share of steps that leaves; and split by cause (:func:`format_path_causes`): over the steps
+whose both ends are within ADD-10 (the smoother's own error), the excess over the others (the track wrong),
+and the restart jumps no path counts. Confidence calibration:
 ADD-10 of the frames whose confidence is >= 0.5 and of those below, and Spearman's rank correlation
 between confidence and ADD (negative when confidence predicts error).
 """
@@ -78,10 +80,10 @@ class TrackScore:
                 self._diam[name] = diameter_bbox_diagonal(v)
             row = self.rows.setdefault(name, {"re": [], "te": [], "add": [], "visible": 0, "posed": 0,
                                               "jit_t": [], "jit_r": [], "conf": [], "step_est": [],
-                                              "step_gt": [], "step_conf": []})
+                                              "step_gt": [], "step_conf": [], "step_right": [], "jumps": []})
             Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
             prev = self._prev.get(name)
-            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence)
+            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence, None)
             if vis < self.min_visible_px:
                 continue
             row["visible"] += 1
@@ -90,18 +92,24 @@ class TrackScore:
             row["posed"] += 1
             row["re"].append(re(s.R, Rg))
             row["te"].append(te(s.t, tg))
-            row["add"].append(add(s.R, s.t, Rg, tg, self._pts[name]))
+            a = add(s.R, s.t, Rg, tg, self._pts[name])
+            row["add"].append(a)
             row["conf"].append(s.confidence)
-            if (prev is not None and prev[0] == index - 1 and prev[1] is not None
-                    and not starts_anew(s.status, s.info.as_dict())):
+            self._prev[name] = self._prev[name][:7] + (a,)
+            if prev is not None and prev[0] == index - 1 and prev[1] is not None:
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
                 gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
+                if starts_anew(s.status, s.info.as_dict()):
+                    row["jumps"].append(dt)  # the track's correction: left out of the path
+                    continue
                 row["jit_r"].append(dr - gr)
                 row["jit_t"].append(dt - gt_)
                 dt_s = time_s - prev[5]
                 row["step_est"].append((dt, dt_s))
                 row["step_gt"].append(gt_)
                 row["step_conf"].append(min(prev[6], s.confidence))
+                limit = 0.1 * self._diam[name]
+                row["step_right"].append(a < limit and (prev[7] is None or prev[7] < limit))
         self._add_tips(index, time_s, states)
 
     def _add_tips(self, index: int, time_s: float, states: list[PartState]) -> None:
@@ -169,6 +177,7 @@ class TrackScore:
             rho = (float(spearmanr(conf, r["add"]).statistic)
                    if len(conf) > 2 and np.ptp(conf) > 0 and np.ptp(r["add"]) > 0 else float("nan"))
             sure = np.asarray(r["step_conf"]) >= 0.5
+            right = np.asarray(r["step_right"], dtype=bool)
             out[name] = {
                 "visible_frames": r["visible"], "posed_frames": r["posed"],
                 "re_median_deg": float(np.median(r["re"])) if r["re"] else float("nan"),
@@ -186,6 +195,11 @@ class TrackScore:
                 "path_conf_ratio": (float(est[sure].sum() / true[sure].sum())
                                     if len(true) and true[sure].sum() > 0 else float("nan")),
                 "path_conf_share_pct": 100.0 * float(sure.mean()) if len(sure) else float("nan"),
+                "path_right_ratio": (float(est[right].sum() / true[right].sum())
+                                     if len(true) and true[right].sum() > 0 else float("nan")),
+                "path_right_share_pct": 100.0 * float(right.mean()) if len(right) else float("nan"),
+                "excess_wrong_mm": float((est - true)[~right].sum()) if len(est) else 0.0,
+                "jumps": len(r["jumps"]), "jump_mm": float(sum(r["jumps"])),
                 "add10_conf_hi_pct": 100.0 * float(hit[conf >= 0.5].mean()) if (conf >= 0.5).any() else float("nan"),
                 "add10_conf_lo_pct": 100.0 * float(hit[conf < 0.5].mean()) if (conf < 0.5).any() else float("nan"),
                 "conf_hi_share_pct": 100.0 * float((conf >= 0.5).mean()) if len(conf) else float("nan"),
@@ -200,6 +214,20 @@ def format_tip_summary(summary: dict[str, dict]) -> str:
     for label, r in summary.items():
         lines.append(f"| {label} | {r['frames']} | {r['tip_err_median_mm']:.1f} | {r['path_mm']:.0f} / "
                      f"{r['path_gt_mm']:.0f} = {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def format_path_causes(summary: dict[str, dict]) -> str:
+    """A markdown table of where each part's path error comes from (:meth:`TrackScore.summary`): the path
+    over the steps whose both ends are within ADD-10 of the truth (the smoother's own error: jitter, lag),
+    the excess over the other counted steps (the track wrong), and the jumps of restarts and fresh starts,
+    which no path counts."""
+    lines = ["| part | path est / gt | path where the track is right: est / gt (share of steps %) "
+             "| excess where it is wrong (mm) | restart / fresh-start jumps left out (n, mm) |",
+             "|---|---|---|---|---|"]
+    for name, r in summary.items():
+        lines.append(f"| {name} | {r['path_ratio']:.2f} | {r['path_right_ratio']:.2f} ({r['path_right_share_pct']:.0f}) | "
+                     f"{r['excess_wrong_mm']:.0f} | {r['jumps']}, {r['jump_mm']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
