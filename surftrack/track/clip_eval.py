@@ -72,6 +72,7 @@ class TrackScore:
         self._pts: dict[str, np.ndarray] = {}
 
     def add_frame(self, index: int, time_s: float, states: list[PartState]) -> None:
+        fresh = {s.spec.name for s in states if starts_anew(s.status, s.info.as_dict())}
         for s in states:
             name = s.spec.name
             if name not in self._pts:
@@ -82,8 +83,10 @@ class TrackScore:
                                               "jit_t": [], "jit_r": [], "conf": [], "step_est": [],
                                               "step_gt": [], "step_conf": [], "step_right": [], "jumps": []})
             Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
+            scored = vis >= self.min_visible_px and s.R is not None
+            a = add(s.R, s.t, Rg, tg, self._pts[name]) if scored else None
             prev = self._prev.get(name)
-            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence, None)
+            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence, a)
             if vis < self.min_visible_px:
                 continue
             row["visible"] += 1
@@ -92,14 +95,12 @@ class TrackScore:
             row["posed"] += 1
             row["re"].append(re(s.R, Rg))
             row["te"].append(te(s.t, tg))
-            a = add(s.R, s.t, Rg, tg, self._pts[name])
             row["add"].append(a)
             row["conf"].append(s.confidence)
-            self._prev[name] = self._prev[name][:7] + (a,)
             if prev is not None and prev[0] == index - 1 and prev[1] is not None:
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
                 gr, gt_ = pose_distance(prev[3], prev[4], Rg, tg)
-                if starts_anew(s.status, s.info.as_dict()):
+                if name in fresh:
                     row["jumps"].append(dt)  # the track's correction: left out of the path
                     continue
                 row["jit_r"].append(dr - gr)
@@ -110,12 +111,13 @@ class TrackScore:
                 row["step_conf"].append(min(prev[6], s.confidence))
                 limit = 0.1 * self._diam[name]
                 row["step_right"].append(a < limit and (prev[7] is None or prev[7] < limit))
-        self._add_tips(index, time_s, states)
+        self._add_tips(index, time_s, states, fresh)
 
-    def _add_tips(self, index: int, time_s: float, states: list[PartState]) -> None:
+    def _add_tips(self, index: int, time_s: float, states: list[PartState], fresh: set[str]) -> None:
         """The tool tip (:meth:`Instrument.tool_tip`) of each instrument in ``self.instruments``, from the
         frame's part poses and from the ground truth's, on frames where every tip-carrying part has a pose
-        and one of them is visible."""
+        and one of them is visible; no step into a frame where one of its parts (names in ``fresh``)
+        starts anew."""
         groups: dict[tuple[str, int], list[PartState]] = {}
         for s in states:
             groups.setdefault((s.spec.instrument, s.spec.instance), []).append(s)
@@ -135,8 +137,7 @@ class TrackScore:
             gt_tip = inst.tool_tip({p: se3(R, t) for p, (R, t, _) in gt.items()})[1]
             rec["err"].append(float(np.linalg.norm(est_tip - gt_tip)))
             prev = rec["prev"]
-            if prev is not None and prev[0] == index - 1 and not any(starts_anew(s.status, s.info.as_dict())
-                                                                     for s in group):
+            if prev is not None and prev[0] == index - 1 and not any(s.spec.name in fresh for s in group):
                 rec["step_est"].append((float(np.linalg.norm(est_tip - prev[1])), time_s - prev[3]))
                 rec["step_gt"].append(float(np.linalg.norm(gt_tip - prev[2])))
             rec["prev"] = (index, est_tip, gt_tip, time_s)
