@@ -23,8 +23,10 @@ from surftrack.instruments import (
     load_bop_models,
     load_instrument,
     load_instrument_file,
+    RollTwin,
 )
 from surftrack.instruments.procedural import BUILDERS
+from surftrack.instruments.twin import TWIN_TOL_MM
 
 EXPECTED = {
     "large_needle_driver": "lnd",
@@ -513,3 +515,27 @@ def test_user_instruments_from_the_search_path(tmp_path, monkeypatch):
                                                                     if "built-in" in msg else bad))
         with pytest.raises(InstrumentError, match=msg):
             both.load("lnd")
+
+
+@pytest.mark.parametrize("name,twin", [("large_needle_driver", True), ("cadiere_forceps", True),
+                                       ("biopsy_forceps", True), ("scissors", False),
+                                       ("small_clip_applier", False), ("permanent_cautery_spatula", False)])
+def test_roll_twins_of_the_builtin_instruments(instruments, name, twin):
+    """Graspers with straight, mirrored jaws look the same half a turn about the shaft with the jaws
+    exchanged (the LND's shaft groove deviates 0.45 mm); curved or bent blades and a one-sided spatula do
+    not. The twin joint state's forward kinematics give the twin poses."""
+    inst = instruments[name]
+    tw = inst.roll_twin
+    if not twin:
+        assert tw is None
+        return
+    assert tw.partner == {"shaft": "shaft", "wrist": "wrist", "jaw_left": "jaw_right", "jaw_right": "jaw_left"}
+    assert 0.3 < tw.deviation_mm["shaft"] < TWIN_TOL_MM and tw.deviation_mm["jaw_left"] < 0.05
+    base = se3(rotation_about([0.3, 1.0, 0.2], 0.7), [4.0, -2.0, 90.0])
+    q = JointState.from_degrees(roll=140, pitch=-50, yaw=30, opening=35)
+    poses = {p: (T[:3, :3], T[:3, 3]) for p, T in inst.forward(base, q).items()}
+    expect = inst.forward(base, RollTwin.joints(q))
+    for p, (R, t) in tw.poses(poses).items():
+        assert np.allclose(R, expect[p][:3, :3]) and np.allclose(t, expect[p][:3, 3]), p
+    with pytest.raises(ValueError, match="partners"):
+        tw.poses({"jaw_left": poses["jaw_left"]})

@@ -261,3 +261,28 @@ def test_the_readme_rendering_example_runs():
     res = scope["res"]
     assert res.rgb.shape == (512, 640, 3) and 0.01 < (res.instance > 0).mean() < 0.5
     scope["renderer"].release()
+
+
+def test_the_roll_twin_renders_the_same_silhouettes_with_the_jaws_exchanged(scene):
+    """Half a turn about the shaft, the wrist's angles negated: every part's visible pixels are those of
+    its partner in the original configuration (the jaws exchanged); only the shaft's groove differs. This
+    is why one image cannot tell the twin from the truth (surftrack.instruments.twin)."""
+    inst, r, cam, handles = scene["inst"], scene["r"], scene["cam"], scene["handles"]
+    twin = inst.roll_twin
+    base = rcm_base_pose([-60.0, -45.0, 10.0], [-3.0, -1.0, 55.0])
+    q = JointState.from_degrees(roll=25, pitch=35, yaw=-25, opening=40)
+    ids = set(handles.parts.values())
+
+    def visible(q):
+        poses = handles.poses(inst.forward(base, q))
+        res = r.render(cam, poses, modalities={"instance"})
+        return {p: res.instance == iid for p, iid in handles.parts.items()}, np.isin(res.instance, list(ids))
+
+    a, union_a = visible(q)
+    b, union_b = visible(twin.joints(q))
+    iou = lambda m, n: (m & n).sum() / max((m | n).sum(), 1)  # noqa: E731
+    assert iou(union_a, union_b) > 0.98
+    for p in inst.part_names:
+        assert a[p].sum() > 30, p
+        assert iou(b[twin.partner[p]], a[p]) > 0.95, p
+    assert iou(b["jaw_left"], a["jaw_left"]) < 0.5  # the labels did trade places

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ from surftrack.instruments.cad import (
 from surftrack.instruments.kinematics import JOINT_NAMES, JointLimits, JointState, KinematicChain, PartJoint
 from surftrack.instruments.part import Material, Part
 from surftrack.instruments.procedural import build, finish
+from surftrack.instruments.twin import RollTwin, find_roll_twin
 from surftrack.paths import configs_dir
 
 INSTRUMENTS_ENV = "SURFTRACK_INSTRUMENTS"
@@ -79,6 +80,12 @@ class Instrument:
         lo, hi = out["opening"]
         out["opening"] = (min(max(lo, 0.0), hi), hi)
         return out
+
+    @cached_property
+    def roll_twin(self) -> RollTwin | None:
+        """The configuration that looks the same turned half a turn about the shaft, with the jaws
+        exchanged (:mod:`surftrack.instruments.twin`); None for an instrument without one."""
+        return find_roll_twin(self)
 
     @property
     def rest(self) -> JointState:
