@@ -153,6 +153,44 @@ def test_aggregation_with_injected_poses(tiny):
     assert allv["add10_surgripe"] == 1.0 and allv["add10_bop"] == 0.0
 
 
+def test_the_roll_twin_is_scored_as_a_symmetry(tiny):
+    """Estimates that are the LND's roll twin of the truth (half a turn about the shaft, the jaws exchanged:
+    the same image) fail ADD-10 as scored and pass it with the twin counted as a symmetry of the
+    instrument; the truth passes both."""
+    from surftrack.instruments import HALF_TURN
+
+    root, ckpt = tiny
+    bop = BopDataset(root, "train")
+    gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
+    partner = {"shaft": "shaft", "wrist": "wrist", "jaw_left": "jaw_right", "jaw_right": "jaw_left"}
+
+    class Twin(_Oracle):
+        def estimate_batch(self, images, boxes_per_image, Ks):
+            out = []
+            for i, boxes in enumerate(boxes_per_image):
+                insts = [self.gt[(o, tuple(b))] for o, b in boxes]
+                by_name = {self.names[x.obj_id][0]: x for x in insts}
+                poses = []
+                for x in insts:
+                    name, instrument = self.names[x.obj_id]
+                    src = by_name.get(partner[name])  # a part whose partner is hidden keeps the truth
+                    R, t = (src.R @ HALF_TURN, src.t.copy()) if src is not None else (x.R.copy(), x.t.copy())
+                    poses.append(PartPose(x.obj_id, name, instrument, R, t, 1.0, 10, True,
+                                          {"forward": 1.0, "total": 1.0}, (0, 0, 1, 1), np.eye(3), i))
+                out.append(poses)
+            return out
+
+    twin = evaluate(Twin(ckpt, gt, None), root, split="train")
+    scored = [r for r in twin["instances"] if "add10_twin_surgripe" in r]
+    assert len({(r["scene_id"], r["im_id"]) for r in scored}) >= 1  # an image showing the whole instrument
+    assert all(r["add10_twin_surgripe"] for r in scored)
+    assert not any(r["add10_surgripe"] for r in scored if r["part"].endswith(("shaft", "wrist")))
+    assert twin["overall"]["all"]["twin_count"] == len(scored) < len(twin["instances"])
+    assert "roll twin counted as a symmetry" in markdown_table(twin)
+    truth = evaluate(_Oracle(ckpt, gt, lambda o, name, R, t: (R, t)), root, split="train")
+    assert truth["overall"]["all"]["add10_surgripe"] == truth["overall"]["all"]["add10_twin_surgripe"] == 1.0
+
+
 def test_summarize_hand_computed():
     parts = {1: {"label": "shaft", "diameter_bop_mm": 20.0, "diameter_surgripe_mm": 30.0},
              2: {"label": "jaw", "diameter_bop_mm": 10.0, "diameter_surgripe_mm": 12.0}}

@@ -35,6 +35,7 @@ class InstanceConditions:
     part: str
     add10: bool
     values: Mapping[str, float]
+    add10_twin: bool | None = None  # with the instrument's roll twin counted as a symmetry (None: not scored)
 
 
 def instance_conditions(result: Mapping, data_dir: str | Path, split: str = "test") -> list[InstanceConditions]:
@@ -51,7 +52,9 @@ def instance_conditions(result: Mapping, data_dir: str | Path, split: str = "tes
         values = {"z": float(inst.t[2]), "side": float(max(inst.bbox_visib[2], inst.bbox_visib[3])),
                   "visib": float(inst.visib_fract)}
         values.update({k: abs(float(v)) for k, v in (inst.extra.get("joints_deg") or {}).items()})
-        out.append(InstanceConditions(str(r["part"]), bool(r["add10_surgripe"]), values))
+        twin = r.get("add10_twin_surgripe")
+        out.append(InstanceConditions(str(r["part"]), bool(r["add10_surgripe"]), values,
+                                      None if twin is None else bool(twin)))
     return out
 
 
@@ -74,6 +77,23 @@ def cause_tables(conditions: Sequence[InstanceConditions], bins=BINS) -> str:
                 last = k == len(edges) - 2  # the last bin holds its upper edge (a fraction of 1, 180 deg)
                 ok = [c.add10 for c in sel if lo <= c.values[key] < hi or (last and c.values[key] >= hi)]
                 cells.append(f"{100 * np.mean(ok):.0f} ({len(ok)})" if ok else "-")
+            lines.append(f"| {part} | " + " | ".join(cells) + " |")
+        lines.append("")
+    twins = [c for c in conditions if c.add10_twin is not None and "roll" in c.values]
+    if twins:
+        # the roll twin is the failure a tool rolled away from the training range meets (instruments.twin)
+        edges = next(e for _, k, e in bins if k == "roll") if any(k == "roll" for _, k, _ in bins) else (0, 180)
+        heads = [f"{lo:g}-{hi:g}" for lo, hi in zip(edges[:-1], edges[1:])]
+        lines += ["ADD-10 (%) as scored / with the instrument's roll twin counted as a symmetry, by |roll| (deg):", "",
+                  "| part | " + " | ".join(heads) + " |", "|---|" + "---|" * len(heads)]
+        for part in ["all parts", *parts]:
+            sel = [c for c in twins if part == "all parts" or c.part == part]
+            cells = []
+            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+                last = k == len(edges) - 2
+                b = [c for c in sel if lo <= c.values["roll"] < hi or (last and c.values["roll"] >= hi)]
+                cells.append(f"{100 * np.mean([c.add10 for c in b]):.0f} / {100 * np.mean([c.add10_twin for c in b]):.0f}"
+                             f" ({len(b)})" if b else "-")
             lines.append(f"| {part} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)

@@ -90,7 +90,7 @@ def group_stats(records: Sequence[Mapping], diameters: Mapping[int, Mapping[str,
             "add10_bop", "add10_surgripe", "adds10_bop", "adds10_surgripe", "auc_add_0_5mm", "auc_adds_0_5mm")
     out: dict = {"count": n, "failures": sum(1 for r in records if not r.get("ok", True))}
     if n == 0:
-        return out | {k: None for k in keys}
+        return out | {k: None for k in keys} | {"add10_twin_surgripe": None, "twin_count": 0}
     col = {k: np.array([float(r[k]) for r in records]) for k in ("re", "te", "add", "adds")}
     for k, v in col.items():
         out[f"{k}_mean"] = _finite(np.mean(v))
@@ -101,7 +101,10 @@ def group_stats(records: Sequence[Mapping], diameters: Mapping[int, Mapping[str,
         out[f"adds10_{conv}"] = float(np.mean(col["adds"] < 0.1 * d))
     out["auc_add_0_5mm"] = auc(col["add"], AUC_MAX_MM)
     out["auc_adds_0_5mm"] = auc(col["adds"], AUC_MAX_MM)
-    return {k: out[k] for k in ("count", "failures", *keys)}
+    twin = [bool(r["add10_twin_surgripe"]) for r in records if "add10_twin_surgripe" in r]
+    out["add10_twin_surgripe"] = float(np.mean(twin)) if twin else None
+    out["twin_count"] = len(twin)
+    return {k: out[k] for k in ("count", "failures", *keys, "add10_twin_surgripe", "twin_count")}
 
 
 def summarize(records: Sequence[Mapping], parts: Mapping[int, Mapping], occlusion_threshold: float = 0.9) -> dict:
@@ -270,6 +273,9 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         parts_info[o] = {"label": labels[o], "instrument": known[o].instrument, "part": known[o].name,
                          "diameter_bop_mm": diameter_max_pairwise(v), "diameter_surgripe_mm": diameter_bbox_diagonal(v)}
 
+    twins_of = {name: (described_instrument(name, parts, caller_reports=True, registry=instruments)[0] or None)
+                for name, parts in instrument_parts(est.model.parts).items()}
+    twins_of = {name: inst.roll_twin for name, inst in twins_of.items() if inst is not None and inst.roll_twin}
     shared = seeds is not None
     seeds = list(seeds) if shared else [est.preset.seed]
     records: dict[int, list[dict]] = {sd: [] for sd in seeds}
@@ -302,9 +308,10 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
                 per_image = (sum(p.timings.get("total", 0.0) for p in plist) * 1e-3 if shared else
                              est_s / len(chunk)) + kin_s / len(chunk)
                 image_s[sd].append(per_image)
-                for inst, p in zip(by_image[k], plist):
-                    records[sd].append(_record(inst, p, points[inst.obj_id], parts_info[inst.obj_id], per_image,
-                                               occlusion_threshold))
+                recs = [_record(inst, p, points[inst.obj_id], parts_info[inst.obj_id], per_image, occlusion_threshold)
+                        for inst, p in zip(by_image[k], plist)]
+                _score_twins(by_image[k], plist, recs, points, parts_info, known, twins_of)
+                records[sd].extend(recs)
         if bar is not None:
             bar.update(len(chunk))
     if bar is not None:
@@ -319,6 +326,31 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
               "device": str(est.device), "n_images": len(keys), "skipped_unknown_obj": skipped}
     return [_result(common, sd, records[sd], image_s[sd], load_s, load_s + sum(image_s[sd]) if shared else wall_s,
                     images_per_batch, shared, parts_info, obj_used, occlusion_threshold, list(warn)) for sd in seeds]
+
+
+def _score_twins(instances: Sequence, poses: Sequence, records: list[dict], points: Mapping, parts_info: Mapping,
+                 known: Mapping, twins_of: Mapping) -> None:
+    """Add ``add10_twin_surgripe`` to the records of one image's instruments that have a roll twin
+    (:mod:`surftrack.instruments.twin`) and whose parts were all estimated: ADD-10 with the twin counted
+    as a symmetry of the instrument (BOP's treatment of a symmetric object), i.e. of the estimates or of
+    their twin, whichever is nearer the truth over the instrument's parts (each part's ADD capped at its
+    diameter)."""
+    groups: dict = defaultdict(dict)
+    for i, (inst, g) in enumerate(zip(instances, _instrument_groups(instances))):
+        groups[(known[inst.obj_id].instrument, g)][known[inst.obj_id].name] = i
+    for (name, _), members in groups.items():
+        twin = twins_of.get(name)
+        if twin is None or not twin.closed(members) or not all(poses[i].ok for i in members.values()):
+            continue
+        turned = twin.poses({part: (poses[i].R, poses[i].t) for part, i in members.items()})
+        same, other = {}, {}
+        for part, i in members.items():
+            inst, d = instances[i], parts_info[instances[i].obj_id]["diameter_surgripe_mm"]
+            same[i] = min(records[i]["add"], d)
+            other[i] = min(pose_errors(*turned[part], inst.R, inst.t, points[inst.obj_id])["add"], d)
+        best = other if sum(other.values()) < sum(same.values()) else same
+        for i in members.values():
+            records[i]["add10_twin_surgripe"] = bool(best[i] < 0.1 * parts_info[instances[i].obj_id]["diameter_surgripe_mm"])
 
 
 def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion_threshold: float) -> dict:
@@ -422,6 +454,13 @@ def markdown_table(result: Mapping, diameter: str = "surgripe", stat: str = "mea
                                         _fmt(a[f"re_{other_s}"]), _fmt(a[f"te_{other_s}"]), _fmt(a[f"add_{stat}"]),
                                         _fmt(a[f"add10_{other_d}"], 100), _fmt(a["auc_adds_0_5mm"], 100)]) + " |")
     lines += ["", f"All instances (non-occ + occ). ADD-10 here uses the {DIAMETERS[other_d]}."]
+    twins = [(label, p["all"]) for label, p in rows if p["all"].get("twin_count")]
+    if twins:
+        lines += ["", "ADD-10 (%, SurgRIPE diameter) with each instrument's roll twin counted as a symmetry (half a "
+                      "turn about the shaft, the jaws exchanged: one image cannot tell them apart; instances whose "
+                      "instrument was estimated whole): "
+                  + ", ".join(f"{label.strip('*')} {100 * a['add10_twin_surgripe']:.2f} ({a['twin_count']})"
+                              for label, a in twins) + "."]
     return "\n".join(lines) + "\n"
 
 

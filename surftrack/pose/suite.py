@@ -183,7 +183,7 @@ def evaluate_suite(checkpoint, sets: Sequence[SuiteSet], folders: Mapping[str, P
                    **kwargs) -> dict[str, dict]:
     """:func:`~surftrack.pose.evaluate.evaluate_seeds` on every set's ``train`` split; returns name ->
     {"parts": {label: ADD-10 mean over seeds, None without instances}, "all": pooled mean, "per_seed": pooled per seed,
-    "images": n}. ``kwargs`` go to the evaluation (preset, kinematic, device, instruments, ...)."""
+    "twin": pooled mean with the instruments' roll twins counted as a symmetry (None without), "images": n}. ``kwargs`` go to the evaluation (preset, kinematic, device, instruments, ...)."""
     from surftrack.pose.estimator import PoseEstimator
     from surftrack.pose.evaluate import evaluate_seeds
     from surftrack.pose.preset import get_preset
@@ -200,7 +200,9 @@ def evaluate_suite(checkpoint, sets: Sequence[SuiteSet], folders: Mapping[str, P
                  if label in results[0]["parts"] else None
                  for label in (f"{info.instrument} {info.name}" for info in est.model.parts)}
         per_seed = [float(r["overall"]["all"][key]) for r in results]
+        twin = [r["overall"]["all"].get("add10_twin_surgripe") for r in results]
         table[s.name] = {"parts": parts, "all": float(np.mean(per_seed)), "per_seed": per_seed,
+                         "twin": float(np.mean(twin)) if all(v is not None for v in twin) else None,
                          "images": results[0]["n_images"], "warnings": results[0]["warnings"]}
     return table
 
@@ -209,15 +211,22 @@ def suite_table(table: Mapping[str, Mapping], sets: Sequence[SuiteSet]) -> str:
     """Markdown: a row per set (its seed and what it isolates), a column per part, pooled last (ADD-10 %)."""
     labels = list(dict.fromkeys(label for row in table.values() for label in row["parts"]))
     short = [label.split(" ", 1)[-1] for label in labels]
-    head = ["set", "seed", "images", *short, "all parts", "seed range"]
+    twin = any(table[s.name].get("twin") is not None for s in sets)
+    head = ["set", "seed", "images", *short, "all parts", "seed range", *(["up to the roll twin"] if twin else [])]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in sets:
         row = table[s.name]
         cells = [f"{100 * row['parts'][label]:.1f}" if row["parts"].get(label) is not None else "–" for label in labels]
+        extra = ([f"{100 * row['twin']:.1f}" if row.get("twin") is not None else "–"] if twin else [])
         lines.append("| " + " | ".join([s.name, str(s.seed), str(row["images"]), *cells, f"{100 * row['all']:.1f}",
-                                        f"{100 * min(row['per_seed']):.1f}-{100 * max(row['per_seed']):.1f}"]) + " |")
+                                        f"{100 * min(row['per_seed']):.1f}-{100 * max(row['per_seed']):.1f}",
+                                        *extra]) + " |")
     notes = [f"- {s.name}: {s.about}" for s in sets if s.about]
-    return "\n".join(lines + ["", "ADD-10 (%) with the SurgRIPE diameter, mean over pose-solver seeds.", *notes]) + "\n"
+    about = ["", "ADD-10 (%) with the SurgRIPE diameter, mean over pose-solver seeds."
+             + (" Up to the roll twin: with each instrument's half turn about its shaft (the jaws exchanged, which "
+                "one image cannot tell from the truth) counted as a symmetry, over the images whose instrument "
+                "was estimated whole." if twin else "")]
+    return "\n".join(lines + about + notes) + "\n"
 
 
 __all__ = ["SuiteClip", "SuiteError", "SuiteSet", "clip_table", "evaluate_suite", "load_suite", "load_suite_clips",
