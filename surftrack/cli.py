@@ -197,6 +197,10 @@ def _cmd_synth_clip(args: argparse.Namespace) -> int:
     from surftrack.synth.clip import ClipConfig, make_clip
 
     overrides = {"seconds": args.seconds, "fps": args.fps}
+    if args.roll_deg is not None:
+        overrides["roll_deg"] = tuple(args.roll_deg)
+    if args.roll_swing_deg is not None:
+        overrides["roll_swing_deg"] = tuple(args.roll_swing_deg)
     if args.second is not None:
         overrides["second_instrument"] = None if args.second.lower() == "none" else args.second
     if args.seconds <= 0 or args.fps <= 0:
@@ -509,6 +513,11 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--seconds", type=float, default=10.0)
     sc.add_argument("--fps", type=float, default=30.0)
     sc.add_argument("--seed", type=_seed, default=0)
+    sc.add_argument("--roll-deg", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="the main tool's roll at the start, degrees about the jaws opening towards the camera "
+                         "(default: -30 30; -180 180 for anywhere)")
+    sc.add_argument("--roll-swing-deg", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="how far its roll then wanders, an amplitude drawn from LO..HI degrees (default: 20 45)")
     sc.add_argument("--quiet", action="store_true", help="no progress bar")
     sc.set_defaults(func=_cmd_synth_clip)
     jo = sub.add_parser("join", help="join BOP datasets of the same instruments into one training folder (links)")

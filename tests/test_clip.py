@@ -272,7 +272,22 @@ def test_single_tool_clip(tmp_path):
     load_detections(tmp_path / "det.json")
 
 
+def test_the_roll_starts_where_asked_and_wanders_as_far_as_asked(tmp_path):
+    """A tool rolled away from the camera (the jaws opening away from it) for a whole clip: what the
+    estimator's roll twin needs to be measured on (surftrack.instruments.twin)."""
+    cfg = ClipConfig(seconds=0.5, fps=10, width=W, height=H, second_instrument=None, leave_view=False,
+                     roll_deg=(150, 170), roll_swing_deg=(0, 0))
+    make_clip(tmp_path, "lnd", cfg, seed=2)
+    gt = json.loads((tmp_path / "gt.json").read_text())
+    rolls = {round(rec["joints_deg"]["roll"], 6) for f in gt["frames"].values() for rec in f["gt"]}
+    assert len(rolls) == 1 and 150 <= rolls.pop() <= 170
+    assert ClipConfig.from_dict(gt["config"]) == cfg
+
+
 def test_config_validation():
+    for bad in ({"roll_deg": (10, -10)}, {"roll_deg": (0, 400)}, {"roll_swing_deg": (-5, 5)}, {"roll_deg": 30}):
+        with pytest.raises(ValueError, match="roll"):
+            ClipConfig.from_dict(bad)
     assert ClipConfig.from_dict({"seconds": 2, "second_instrument": None}).second_instrument is None
     assert ClipConfig.from_dict(ClipConfig().to_dict()) == ClipConfig()
     with pytest.raises(ValueError, match="unknown clip config"):

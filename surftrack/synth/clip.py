@@ -87,6 +87,10 @@ class ClipConfig:
     detection_noise: dict = field(default_factory=dict)
     effects: dict = field(default_factory=dict)
     crf: int = 18
+    # The main tool's roll at the start (deg about the `view` reference: the jaws open towards the camera;
+    # [-180, 180] starts it anywhere), and how far it then wanders (amplitude drawn from this range).
+    roll_deg: tuple[float, float] = (-30.0, 30.0)
+    roll_swing_deg: tuple[float, float] = (20.0, 45.0)
 
     def __post_init__(self) -> None:
         if not (self.seconds > 0 and math.isfinite(self.seconds)):
@@ -105,6 +109,14 @@ class ClipConfig:
             raise ValueError(f"crf must be in [0, 51], got {self.crf}")
         if not isinstance(self.detection_noise, dict) or not isinstance(self.effects, dict):
             raise ValueError("detection_noise and effects must be mappings")
+        for name in ("roll_deg", "roll_swing_deg"):
+            v = getattr(self, name)
+            if (not isinstance(v, (tuple, list)) or len(v) != 2 or not all(math.isfinite(float(x)) for x in v)
+                    or v[0] > v[1] or abs(float(v[0])) > 360 or abs(float(v[1])) > 360):
+                raise ValueError(f"{name} must be [lo, hi] degrees with lo <= hi, within +-360, got {v!r}")
+            object.__setattr__(self, name, (float(v[0]), float(v[1])))
+        if self.roll_swing_deg[0] < 0:
+            raise ValueError(f"roll_swing_deg must not be negative, got {list(self.roll_swing_deg)}")
         self.noise()
         self.camera_effects()
 
@@ -165,9 +177,11 @@ def _wiggle(rng: np.random.Generator, t: np.ndarray, freq: tuple[float, float], 
     return 0.5 * (s - s[0])
 
 
-def _joint_track(rng: np.random.Generator, inst: Instrument, t: np.ndarray, q0: JointState) -> list[JointState]:
-    """Roll, wrist pitch / yaw wandering around ``q0``; jaw opening cycling 0..60 deg at a varying pace."""
-    roll = q0.roll + np.radians(uniform(rng, (20.0, 45.0))) * _wiggle(rng, t, (0.05, 0.3))
+def _joint_track(rng: np.random.Generator, inst: Instrument, t: np.ndarray, q0: JointState,
+                 roll_swing_deg: tuple[float, float] = (20.0, 45.0)) -> list[JointState]:
+    """Roll, wrist pitch / yaw wandering around ``q0`` (the roll by an amplitude drawn from
+    ``roll_swing_deg``); jaw opening cycling 0..60 deg at a varying pace."""
+    roll = q0.roll + np.radians(uniform(rng, roll_swing_deg)) * _wiggle(rng, t, (0.05, 0.3))
     lim = np.radians(70.0)
     pitch = np.clip(q0.pitch + np.radians(uniform(rng, (15.0, 35.0))) * _wiggle(rng, t, (0.1, 0.5)), -lim, lim)
     yaw = np.clip(q0.yaw + np.radians(uniform(rng, (15.0, 35.0))) * _wiggle(rng, t, (0.1, 0.5)), -lim, lim)
@@ -291,7 +305,7 @@ class _Planner:
         self.renderer, self.handles = renderer, handles
         self.n = cfg.n_frames
         self.t = np.arange(self.n) / cfg.fps
-        self.pose_cfg = PoseCfg()
+        self.pose_cfg = PoseCfg(roll_deg=cfg.roll_deg)
         insts = {main.name: main, **({second.name: second} if second is not None else {})}
         self.tissue_checks = {k: TissueCollision(v, seed=seed) for k, v in insts.items()}
         self.view_tests = {k: _ViewTest(v, camera, seed=seed) for k, v in insts.items()}
@@ -352,7 +366,7 @@ class _Planner:
             t = self.t
             dirs = _swing(rng, t, d0, uniform(rng, (6.0, 14.0)), L)
             depth = L + uniform(rng, (5.0, 15.0)) * _wiggle(rng, t, (0.05, 0.4))
-            q = _joint_track(rng, inst, t, s.q)
+            q = _joint_track(rng, inst, t, s.q, self.cfg.roll_swing_deg)
             return _Track(inst, trocar, dirs, depth, q, np.zeros(self.n))
         return None
 
