@@ -17,7 +17,7 @@ z, origins on it); :func:`find_roll_twin` checks both on the meshes and the forw
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -34,7 +34,8 @@ if TYPE_CHECKING:
 HALF_TURN = np.diag([-1.0, -1.0, 1.0])
 #: Largest surface deviation (99th percentile, mm) between a half-turned part and its partner for the two
 #: to count as one shape: about what a 128-px crop of a part 100 mm from the lens resolves (5 px per mm at
-#: f = 480 px). The LND's groove deviates 0.45 mm; the scissors' curved blades 1.3 mm.
+#: f = 480 px). The LND's groove deviates 0.45 mm; the spatula 1.2 mm, the clip applier's bent jaws 1.5,
+#: the scissors' curved blades 1.8.
 TWIN_TOL_MM = 1.0
 
 Pose = tuple[np.ndarray, np.ndarray]
@@ -48,7 +49,7 @@ class RollTwin:
     partner: dict[str, str]
     deviation_mm: dict[str, float]
 
-    def closed(self, parts) -> bool:
+    def closed(self, parts: Iterable[str]) -> bool:
         """Whether ``parts`` hold every one of their partners (a twin of only some of them is undefined)."""
         names = set(parts)
         return all(self.partner[p] in names for p in names)

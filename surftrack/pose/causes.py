@@ -72,28 +72,29 @@ def cause_tables(conditions: Sequence[InstanceConditions], bins=BINS) -> str:
         lines += [f"| {title} | " + " | ".join(heads) + " |", "|---|" + "---|" * len(heads)]
         for part in ["all parts", *parts]:
             sel = [c for c in have if part == "all parts" or c.part == part]
-            cells = []
-            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-                last = k == len(edges) - 2  # the last bin holds its upper edge (a fraction of 1, 180 deg)
-                ok = [c.add10 for c in sel if lo <= c.values[key] < hi or (last and c.values[key] >= hi)]
-                cells.append(f"{100 * np.mean(ok):.0f} ({len(ok)})" if ok else "-")
+            cells = [f"{100 * np.mean([c.add10 for c in b]):.0f} ({len(b)})" if b else "-"
+                     for b in _binned(sel, key, edges)]
             lines.append(f"| {part} | " + " | ".join(cells) + " |")
         lines.append("")
+    roll_edges = {k: e for _, k, e in bins}.get("roll")
     twins = [c for c in conditions if c.add10_twin is not None and "roll" in c.values]
-    if twins:
-        # the roll twin is the failure a tool rolled away from the training range meets (instruments.twin)
-        edges = next(e for _, k, e in bins if k == "roll") if any(k == "roll" for _, k, _ in bins) else (0, 180)
-        heads = [f"{lo:g}-{hi:g}" for lo, hi in zip(edges[:-1], edges[1:])]
+    if twins and roll_edges is not None:
+        # a tool rolled away from the training range mostly fails as its roll twin (instruments.twin)
+        heads = [f"{lo:g}-{hi:g}" for lo, hi in zip(roll_edges[:-1], roll_edges[1:])]
         lines += ["ADD-10 (%) as scored / with the instrument's roll twin counted as a symmetry, by |roll| (deg):", "",
                   "| part | " + " | ".join(heads) + " |", "|---|" + "---|" * len(heads)]
         for part in ["all parts", *parts]:
             sel = [c for c in twins if part == "all parts" or c.part == part]
-            cells = []
-            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-                last = k == len(edges) - 2
-                b = [c for c in sel if lo <= c.values["roll"] < hi or (last and c.values["roll"] >= hi)]
-                cells.append(f"{100 * np.mean([c.add10 for c in b]):.0f} / {100 * np.mean([c.add10_twin for c in b]):.0f}"
-                             f" ({len(b)})" if b else "-")
+            cells = [f"{100 * np.mean([c.add10 for c in b]):.0f} / {100 * np.mean([c.add10_twin for c in b]):.0f} "
+                     f"({len(b)})" if b else "-" for b in _binned(sel, "roll", roll_edges)]
             lines.append(f"| {part} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _binned(conditions: Sequence[InstanceConditions], key: str, edges: Sequence[float]) -> list[list[InstanceConditions]]:
+    """``conditions`` per bin [lo, hi) of ``values[key]``; the last bin also holds its upper edge and what
+    lies beyond (a fraction of 1, 180 deg)."""
+    last = len(edges) - 2
+    return [[c for c in conditions if lo <= c.values[key] < hi or (k == last and c.values[key] >= hi)]
+            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:]))]

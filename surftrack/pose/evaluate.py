@@ -273,9 +273,11 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         parts_info[o] = {"label": labels[o], "instrument": known[o].instrument, "part": known[o].name,
                          "diameter_bop_mm": diameter_max_pairwise(v), "diameter_surgripe_mm": diameter_bbox_diagonal(v)}
 
-    twins_of = {name: (described_instrument(name, parts, caller_reports=True, registry=instruments)[0] or None)
-                for name, parts in instrument_parts(est.model.parts).items()}
-    twins_of = {name: inst.roll_twin for name, inst in twins_of.items() if inst is not None and inst.roll_twin}
+    twins_of = {}  # instrument -> its roll twin, scored as a symmetry alongside ADD-10
+    for name, parts in instrument_parts(est.model.parts).items():
+        inst = described_instrument(name, parts, registry=instruments)[0]
+        if inst is not None and inst.roll_twin is not None:
+            twins_of[name] = inst.roll_twin
     shared = seeds is not None
     seeds = list(seeds) if shared else [est.preset.seed]
     records: dict[int, list[dict]] = {sd: [] for sd in seeds}
