@@ -441,9 +441,10 @@ sets:
   paper: {{config: paper, seed: 13, overrides: {small}}}
 clips:
   c1: {{seed: 411, seconds: 2.0, fps: 3, about: a short full-range clip}}
+  c2: {{seed: 411, seconds: 2.0, fps: 3, roll_deg: [150, 170], roll_swing_deg: [0, 0]}}
 """)
     clips = load_suite_clips(tmp_path / "suite.yaml")
-    assert [(c.name, c.seed, c.seconds, c.fps) for c in clips] == [("c1", 411, 2.0, 3.0)]
+    assert [(c.name, c.seed, c.seconds, c.fps) for c in clips] == [("c1", 411, 2.0, 3.0), ("c2", 411, 2.0, 3.0)]
     args = ["eval", "--suite", str(tmp_path / "suite.yaml"), "--suite-dir", str(tmp_path / "s"),
             "--model", str(tiny_ckpt), "--preset", "fast", "--seed", "0", "1", "--out", str(tmp_path / "e.json"),
             "--quiet", "--kinematic"]
@@ -452,6 +453,11 @@ clips:
     row = [line for line in out.splitlines() if line.startswith("| c1 |")]
     assert len(row) == 1 and row[0].startswith("| c1 | 411 | 6 |") and "| shaft | wrist |" in out
     assert "c1: a short full-range clip" in (tmp_path / "e.suite.md").read_text()
+    rolls = {rec["joints_deg"]["roll"] for f in json.loads((tmp_path / "s" / "c2" / "gt.json").read_text())["frames"].values()
+             for rec in f["gt"] if rec["instrument_index"] == 0}
+    assert all(150 <= r <= 170 for r in rolls)  # a tool rolled away from the camera, as asked
+    assert json.loads((tmp_path / "s" / "c2" / "suite_clip.json").read_text())["roll_deg"] == [150, 170]
+    assert "roll_deg" not in json.loads((tmp_path / "s" / "c1" / "suite_clip.json").read_text())
     video = tmp_path / "s" / "c1" / "video.mp4"
     made = video.stat().st_mtime_ns
     assert make_suite_clips(clips, tmp_path / "s")["c1"] == tmp_path / "s" / "c1"
@@ -460,7 +466,8 @@ clips:
     stamp.write_text(json.dumps({**json.loads(stamp.read_text()), "seed": 5}))
     with pytest.raises(SuiteError, match="other settings"):
         make_suite_clips(clips, tmp_path / "s")
-    (tmp_path / "bad.yaml").write_text("sets: {a: {seed: 1}}\nclips: {c: {seed: 1, fps: 0}}\n")
-    assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "bad.yaml" in err and "fps" in err
+    for clip, word in (("{seed: 1, fps: 0}", "fps"), ("{seed: 1, roll_deg: [10, -10]}", "roll_deg")):
+        (tmp_path / "bad.yaml").write_text(f"sets: {{a: {{seed: 1}}}}\nclips: {{c: {clip}}}\n")
+        assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "bad.yaml" in err and word in err, err

@@ -43,13 +43,32 @@ class SuiteSet:
 
 @dataclass(frozen=True)
 class SuiteClip:
-    """A tracking clip of the suite: ``surftrack synth-clip`` with this ``seed``, ``seconds`` long at ``fps``."""
+    """A tracking clip of the suite: ``surftrack synth-clip`` with this ``seed``, ``seconds`` long at ``fps``;
+    ``roll_deg`` / ``roll_swing_deg`` (degrees, [lo, hi]) as its options of those names, None for their
+    defaults."""
 
     name: str
     seed: int
     seconds: float = 10.0
     fps: float = 15.0
     about: str = ""
+    roll_deg: tuple[float, float] | None = None
+    roll_swing_deg: tuple[float, float] | None = None
+
+    def clip_config(self):
+        """The :class:`~surftrack.synth.clip.ClipConfig` it is made with (``ValueError`` when invalid)."""
+        from surftrack.synth.clip import ClipConfig
+
+        roll = {k: v for k, v in (("roll_deg", self.roll_deg), ("roll_swing_deg", self.roll_swing_deg)) if v is not None}
+        return ClipConfig(seconds=self.seconds, fps=self.fps, **roll)
+
+    def stamp(self, instrument: str) -> dict:
+        """What a made clip records of its settings (the roll keys only where set, so that clips made before
+        they existed still match)."""
+        out = {"instrument": instrument, "seed": self.seed, "seconds": self.seconds, "fps": self.fps}
+        out.update({k: list(v) for k, v in (("roll_deg", self.roll_deg), ("roll_swing_deg", self.roll_swing_deg))
+                    if v is not None})
+        return out
 
 
 def _deep_merge(base: dict, extra: Mapping) -> dict:
@@ -99,7 +118,7 @@ def load_suite_clips(path: str | Path | None = None) -> list[SuiteClip]:
     out = []
     for name, spec in clips.items():
         spec = dict(spec or {})
-        bad = set(spec) - {"seed", "seconds", "fps", "about"}
+        bad = set(spec) - {"seed", "seconds", "fps", "about", "roll_deg", "roll_swing_deg"}
         if bad:
             raise SuiteError(f"{p}: clip {name!r}: unknown key(s) {sorted(bad)}")
         if not isinstance(spec.get("seed"), int):
@@ -110,8 +129,19 @@ def load_suite_clips(path: str | Path | None = None) -> list[SuiteClip]:
             raise SuiteError(f"{p}: clip {name!r}: seconds and fps must be numbers") from None
         if not (seconds > 0 and fps > 0 and seconds * fps >= 2):
             raise SuiteError(f"{p}: clip {name!r}: needs seconds > 0, fps > 0 and at least 2 frames")
-        out.append(SuiteClip(str(name), int(spec["seed"]), seconds, fps, str(spec.get("about", ""))))
+        clip = SuiteClip(str(name), int(spec["seed"]), seconds, fps, str(spec.get("about", "")),
+                         *(_pair(spec.get(k)) for k in ("roll_deg", "roll_swing_deg")))
+        try:
+            clip.clip_config()
+        except (TypeError, ValueError) as e:
+            raise SuiteError(f"{p}: clip {name!r}: {e}") from None
+        out.append(clip)
     return out
+
+
+def _pair(v):
+    """A [lo, hi] setting as a tuple (None stays None; anything else is left for the clip config to refuse)."""
+    return tuple(v) if isinstance(v, (list, tuple)) else v
 
 
 def make_suite_clips(clips: Sequence[SuiteClip], root: str | Path, instrument: str = "large_needle_driver",
@@ -120,20 +150,19 @@ def make_suite_clips(clips: Sequence[SuiteClip], root: str | Path, instrument: s
     ``suite_clip.json`` beside it records them; a clip made otherwise is refused); returns name -> folder."""
     import json
 
-    from surftrack.synth.clip import ClipConfig, make_clip
+    from surftrack.synth.clip import make_clip
 
     out = {}
     for c in clips:
         folder = Path(root) / c.name
-        stamp = {"instrument": instrument, "seed": c.seed, "seconds": c.seconds, "fps": c.fps}
+        stamp = c.stamp(instrument)
         marker = folder / "suite_clip.json"
         if marker.is_file():
             if json.loads(marker.read_text()) != stamp:
                 raise SuiteError(f"{folder}: made with other settings ({marker.read_text().strip()}); "
                                  f"remove it or use another --suite-dir")
         else:
-            make_clip(folder, instrument, ClipConfig(seconds=c.seconds, fps=c.fps), seed=c.seed,
-                      instruments=instruments)
+            make_clip(folder, instrument, c.clip_config(), seed=c.seed, instruments=instruments)
             marker.write_text(json.dumps(stamp) + "\n")  # last: an interrupted clip is made again
         out[c.name] = folder
     return out
