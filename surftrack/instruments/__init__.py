@@ -30,7 +30,8 @@ from surftrack.instruments.twin import HALF_TURN, RollTwin, find_roll_twin
 __all__ = [
     "BUILTIN", "INSTRUMENTS_ENV", "Attachment", "FitConfig", "Instrument", "InstrumentError", "InstrumentRegistry",
     "JOINT_NAMES", "JointFit",
-    "HALF_TURN", "JointLimits", "JointState", "KinematicChain", "Material", "Part", "PartJoint", "RollTwin", "assign_obj_ids", "estimate_trocar",
-    "export_bop_models", "base_from_root", "find_roll_twin", "fit_configuration", "joints_from_poses", "instrument_files", "list_instruments", "load_bop_models",
+    "HALF_TURN", "JointLimits", "JointState", "KinematicChain", "Material", "Part", "PartJoint", "RollTwin",
+    "assign_obj_ids", "estimate_trocar", "export_bop_models", "base_from_root", "find_roll_twin", "fit_configuration",
+    "joints_from_poses", "instrument_files", "list_instruments", "load_bop_models",
     "load_instrument", "load_instrument_file", "model_info", "rcm_base_pose",
 ]

@@ -6,8 +6,8 @@ labels exchanged then explains an image nearly as well as the true one. On our L
 difference is the shaft's groove (1.2 mm wide, 0.45 mm deep, on a black shaft), and the bundled model does
 not read it: on the held-out full-reach set, 32 of 36 shaft estimates at |roll| 120-180 deg are this twin
 (docs/results/2026-12-05-roll-twin.md). ADD scores a twin as a failure; the kinematics read wrist pitch and
-yaw with the wrong sign and the jaws swapped. In a video the twin that continues the track is the right
-one; a single image cannot tell them apart.
+yaw with the wrong sign and the jaws swapped. A single image cannot tell the two apart; in a video only
+continuity can, and only from a frame where the right one is known.
 
 Each part's twin pose is its pose turned by 180 deg about its own z axis (``R @ HALF_TURN``, same
 translation), taken as the pose of its partner part. That holds when every part's mesh, so turned, matches
@@ -78,6 +78,7 @@ def find_roll_twin(instrument: Instrument, tol_mm: float = TWIN_TOL_MM, samples:
     surface samples per part put the sampling's own share of a deviation near 0.1 mm (about 0.05 s a part;
     :attr:`Instrument.roll_twin` caches it)."""
     names = instrument.part_names
+    area = {p: instrument.parts[p].mesh.area for p in names}
     pts = {p: _surface(instrument.parts[p].mesh, samples) for p in names}
     trees = {p: cKDTree(v) for p, v in pts.items()}
     partner: dict[str, str] = {}
@@ -87,7 +88,7 @@ def find_roll_twin(instrument: Instrument, tol_mm: float = TWIN_TOL_MM, samples:
         turned_tree = cKDTree(turned)
         best = None
         for q in names:
-            if abs(instrument.parts[q].mesh.area - instrument.parts[p].mesh.area) > 0.05 * instrument.parts[p].mesh.area:
+            if abs(area[q] - area[p]) > 0.05 * area[p]:
                 continue  # a turn keeps the area: not the partner
             d = max(np.percentile(trees[q].query(turned)[0], 99), np.percentile(turned_tree.query(pts[q])[0], 99))
             if best is None or d < best[0]:

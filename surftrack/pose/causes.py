@@ -92,7 +92,8 @@ def cause_tables(conditions: Sequence[InstanceConditions], bins=BINS) -> str:
     return "\n".join(lines)
 
 
-def _binned(conditions: Sequence[InstanceConditions], key: str, edges: Sequence[float]) -> list[list[InstanceConditions]]:
+def _binned(conditions: Sequence[InstanceConditions], key: str,
+            edges: Sequence[float]) -> list[list[InstanceConditions]]:
     """``conditions`` per bin [lo, hi) of ``values[key]``; the last bin also holds its upper edge and what
     lies beyond (a fraction of 1, 180 deg)."""
     last = len(edges) - 2

@@ -352,7 +352,8 @@ def _score_twins(instances: Sequence, poses: Sequence, records: list[dict], poin
             other[i] = min(pose_errors(*turned[part], inst.R, inst.t, points[inst.obj_id])["add"], d)
         best = other if sum(other.values()) < sum(same.values()) else same
         for i in members.values():
-            records[i]["add10_twin_surgripe"] = bool(best[i] < 0.1 * parts_info[instances[i].obj_id]["diameter_surgripe_mm"])
+            d = parts_info[instances[i].obj_id]["diameter_surgripe_mm"]
+            records[i]["add10_twin_surgripe"] = bool(best[i] < 0.1 * d)
 
 
 def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion_threshold: float) -> dict:

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -25,6 +25,9 @@ import yaml
 from surftrack.configio import build_dataclass, yaml_problem
 from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.paths import configs_dir
+
+if TYPE_CHECKING:
+    from surftrack.synth.clip import ClipConfig
 
 
 class SuiteError(ValueError):
@@ -55,20 +58,23 @@ class SuiteClip:
     roll_deg: tuple[float, float] | None = None
     roll_swing_deg: tuple[float, float] | None = None
 
-    def clip_config(self):
+    @property
+    def roll(self) -> dict[str, tuple[float, float]]:
+        """The roll settings given (the others keep the clip config's defaults)."""
+        return {k: v for k, v in (("roll_deg", self.roll_deg), ("roll_swing_deg", self.roll_swing_deg))
+                if v is not None}
+
+    def clip_config(self) -> ClipConfig:
         """The :class:`~surftrack.synth.clip.ClipConfig` it is made with (``ValueError`` when invalid)."""
         from surftrack.synth.clip import ClipConfig
 
-        roll = {k: v for k, v in (("roll_deg", self.roll_deg), ("roll_swing_deg", self.roll_swing_deg)) if v is not None}
-        return ClipConfig(seconds=self.seconds, fps=self.fps, **roll)
+        return ClipConfig(seconds=self.seconds, fps=self.fps, **self.roll)
 
     def stamp(self, instrument: str) -> dict:
         """What a made clip records of its settings (the roll keys only where set, so that clips made before
         they existed still match)."""
-        out = {"instrument": instrument, "seed": self.seed, "seconds": self.seconds, "fps": self.fps}
-        out.update({k: list(v) for k, v in (("roll_deg", self.roll_deg), ("roll_swing_deg", self.roll_swing_deg))
-                    if v is not None})
-        return out
+        return {"instrument": instrument, "seed": self.seed, "seconds": self.seconds, "fps": self.fps,
+                **{k: list(v) for k, v in self.roll.items()}}
 
 
 def _deep_merge(base: dict, extra: Mapping) -> dict:
@@ -212,7 +218,8 @@ def evaluate_suite(checkpoint, sets: Sequence[SuiteSet], folders: Mapping[str, P
                    **kwargs) -> dict[str, dict]:
     """:func:`~surftrack.pose.evaluate.evaluate_seeds` on every set's ``train`` split; returns name ->
     {"parts": {label: ADD-10 mean over seeds, None without instances}, "all": pooled mean, "per_seed": pooled per seed,
-    "twin": pooled mean with the instruments' roll twins counted as a symmetry (None without), "images": n}. ``kwargs`` go to the evaluation (preset, kinematic, device, instruments, ...)."""
+    "twin": pooled mean with the instruments' roll twins counted as a symmetry (None without), "images": n}.
+    ``kwargs`` go to the evaluation (preset, kinematic, device, instruments, ...)."""
     from surftrack.pose.estimator import PoseEstimator
     from surftrack.pose.evaluate import evaluate_seeds
     from surftrack.pose.preset import get_preset
