@@ -492,3 +492,47 @@ def test_join_links_the_scenes_of_several_datasets(root, tmp_path):
     with pytest.raises(DatasetError, match="other: its models differ"):
         join_datasets(tmp_path / "again", [root, other])
     assert not (tmp_path / "again").exists()
+
+
+def test_twin_labels_make_the_targets_a_function_of_the_image(root, bop):
+    """The same images annotated as the LND's roll twin (half a turn about the shaft, the jaws exchanged:
+    the same pixels) are labelled back as the twin whose shaft x axis points away from the camera: with
+    twin labels the crops carry the same obj ids, poses and targets as the original annotation (the
+    paper's ranges lie there), and exactly one of the two twins counts as turned."""
+    import copy
+    import dataclasses
+
+    from surftrack.data.twin_labels import twin_labels
+    from surftrack.instruments import HALF_TURN
+
+    objects = json.loads((root / "dataset_card.json").read_text())["objects"]
+    twins = twin_labels({int(o): (v["instrument"], v["part"]) for o, v in objects.items()})
+    names = {int(o): v["part"] for o, v in objects.items()}
+    ids = {v: k for k, v in names.items()}
+    assert twins.partner == {ids["shaft"]: ids["shaft"], ids["wrist"]: ids["wrist"],
+                             ids["jaw_left"]: ids["jaw_right"], ids["jaw_right"]: ids["jaw_left"]}
+    assert twins.axis_parts == {ids["shaft"], ids["wrist"]}
+    turned = copy.copy(bop)
+    turned.instances = [dataclasses.replace(i, obj_id=twins.partner[i.obj_id], R=i.R @ HALF_TURN)
+                        for i in bop.instances]
+    plain, back = twins.flips(bop.instances), twins.flips(turned.instances)
+    assert not any(plain) and all(back)  # the paper's ranges: roll within +-30 deg of that zero; the twin +-180
+    original = CropDataset(bop, crop_size=64, seed=1)
+    relabelled = CropDataset(turned, crop_size=64, seed=1, twins=twins)
+    as_given = CropDataset(turned, crop_size=64, seed=1)
+    jaws = 0
+    for k in range(len(original)):
+        a, b, c = original[k], relabelled[k], as_given[k]
+        assert int(a["obj_id"]) == int(b["obj_id"]) and torch.allclose(a["R"], b["R"], atol=1e-6)
+        assert torch.allclose(a["coord_norm"], b["coord_norm"], atol=1e-5)
+        assert torch.equal(a["mask_amodal"], b["mask_amodal"]) and torch.equal(a["mask_modal"], b["mask_modal"])
+        if names[int(a["obj_id"])].startswith("jaw"):
+            jaws += 1
+            assert int(c["obj_id"]) != int(a["obj_id"])  # as given, the other jaw's label on these pixels
+    assert jaws > 0
+    from surftrack.model.config import TrainConfig
+    from surftrack.model.train import training_crops
+
+    made = training_crops(TrainConfig.from_dict({"data": {"crop": 64, "canonical_twin": True}}), bop, sorted(bop.models), 0)
+    assert made.twins == twins  # the training data section's switch, the objects read from the dataset card
+    assert training_crops(TrainConfig.from_dict({"data": {"crop": 64}}), bop, sorted(bop.models), 0).twins is None

@@ -30,6 +30,7 @@ from surftrack.data.augment import AugmentConfig, augment
 from surftrack.data.bop import BopDataset, DatasetError
 from surftrack.data.crops import crop_box
 from surftrack.data.targets import TargetRenderer, modal_mask
+from surftrack.data.twin_labels import TwinLabels
 from surftrack.geometry import crop_with_rotation, pose_in_crop, warp_image
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -88,12 +89,15 @@ class CropDataset(Dataset):
         K (3, 3), R (3, 3), t (3,)      float32 crop intrinsics and model-to-crop-camera pose (t in mm)
         bbox (4,) float32               crop box (x0, y0, x1, y1), pixel edges of the original image
         angle () float32                in-plane rotation of the crop (rad)
+
+    ``twins``: label near-symmetric instruments as one of their two roll twins (:mod:`surftrack.data.twin_labels`;
+    the item's obj_id, part_index, pose and targets are then the twin's).
     """
 
     def __init__(self, bop: BopDataset, obj_ids: list[int] | None = None, crop_size: int = 224,
                  scale: float = 1.2, jitter: float = 0.0, max_rotation_deg: float = 0.0,
                  augment: AugmentConfig | dict | None = None, mask_mode: str = "amodal", box: str = "visib",
-                 seed: int = 0):
+                 seed: int = 0, twins: TwinLabels | None = None):
         self.bop = bop
         self.cfg = CropConfig(int(crop_size), float(scale), float(jitter), float(max_rotation_deg), box, mask_mode)
         self.obj_ids = [int(o) for o in (obj_ids if obj_ids is not None else sorted(bop.models))]
@@ -111,6 +115,11 @@ class CropDataset(Dataset):
             self.augment = augment if isinstance(augment, AugmentConfig) else AugmentConfig.from_dict(augment)
         self.seed = int(seed)
         self.epoch = 0
+        self.twins = twins
+        self._flip = ({k for k, f in enumerate(twins.flips(bop.instances)) if f} if twins is not None else set())
+        lacking = sorted({twins.partner[bop.instances[k].obj_id] for k in self._flip} - set(self._part_index))
+        if lacking:
+            raise DatasetError(f"{bop.root / bop.split}: twin labels name obj_ids {lacking} outside obj_ids {self.obj_ids}")
         self.targets = TargetRenderer(bop.models, self.cfg.size)  # GL created on first use, in the worker
 
     def set_epoch(self, epoch: int) -> None:
@@ -140,10 +149,13 @@ class CropDataset(Dataset):
         if cfg.max_rotation_deg > 0:
             angle = float(np.radians(rng.uniform(-cfg.max_rotation_deg, cfg.max_rotation_deg)))
         M, crop_cam, R_crop = crop_with_rotation(camera, box, cfg.size, angle)
-        T = pose_in_crop(R_crop, inst.pose)
+        obj_id, pose = inst.obj_id, inst.pose
+        if self.items[index] in self._flip:  # the same pixels, labelled as the instrument's other twin
+            obj_id, pose = self.twins.relabel(obj_id, pose)
+        T = pose_in_crop(R_crop, pose)
         image = warp_image(rgb, M, cfg.size)
         modal = modal_mask(visib, M, cfg.size)
-        tg = self.targets.render(inst.obj_id, crop_cam, T)
+        tg = self.targets.render(obj_id, crop_cam, T)
         image, modal = augment(image, modal, self.augment, rng)
         amodal = tg.valid
         train = amodal if cfg.mask_mode == "amodal" else modal
@@ -155,8 +167,8 @@ class CropDataset(Dataset):
             "mask_train": torch.from_numpy(train.astype(np.float32)),
             "coord_norm": torch.from_numpy(tg.coord_norm),
             "coord_valid": torch.from_numpy(tg.valid.copy()),
-            "part_index": i64(self._part_index[inst.obj_id]),
-            "obj_id": i64(inst.obj_id),
+            "part_index": i64(self._part_index[obj_id]),
+            "obj_id": i64(obj_id),
             "scene_id": i64(inst.scene_id),
             "im_id": i64(inst.im_id),
             "gt_index": i64(inst.gt_index),

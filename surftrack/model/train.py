@@ -256,11 +256,19 @@ def _split_instances(bop, val_images: int, seed: int, group_size: int = 1) -> tu
 
 def training_crops(cfg: TrainConfig, bop, obj_ids: list[int], seed: int, validation: bool = False):
     """The :class:`~surftrack.data.CropDataset` of ``bop`` (a BopDataset) that :func:`train` feeds the
-    network: crops of ``cfg.data``, jittered, rotated and augmented; with ``validation``, centred and plain."""
+    network: crops of ``cfg.data``, jittered, rotated and augmented; with ``validation``, centred and plain.
+    With ``cfg.data.canonical_twin``, near-symmetric instruments are labelled as one of their roll twins
+    (:mod:`surftrack.data.twin_labels`; the objects' instruments and parts from ``dataset_card.json``)."""
     from surftrack.data import CropDataset
+    from surftrack.data.twin_labels import twin_labels
 
+    twins = None
+    if cfg.data.canonical_twin:
+        card = bop.root / "dataset_card.json"
+        objects = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
+        twins = twin_labels({o: (objects.get(str(o), {}).get("instrument", ""), bop.models[o].name) for o in obj_ids})
     common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode,
-                  seed=seed)
+                  seed=seed, twins=twins)
     if validation:
         return CropDataset(bop, jitter=0.0, augment=None, **common)
     return CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
