@@ -18,7 +18,8 @@ Steps (each resumable: an existing output is reused):
    BOP folder whose scene folders link to theirs) at the same rates; 10,000 steps on the first four
    2,000-image sets (8,000 images) at the same rates; 10,000 steps on all five (10,000 images) at the same
    rates; stage 7: 12,000 steps on the 8,000 stage-7 images at a quarter of the lite rates (7.5e-5 /
-   7.5e-6) after a 500-step warm-up, cosine. Each stage holds out its own validation images from its
+   7.5e-6) after a 500-step warm-up, cosine, the LND labelled as one of its roll twins
+   (``data.canonical_twin``; stages 1-6 without). Each stage holds out its own validation images from its
    data, so most of the later stages' were training images of earlier ones: their validation curves
    flatter; the held-out evaluation below is independent of all stages. ``--stage7-init`` runs stage 7
    alone, from another checkpoint (the int8 export of stage 6 when its fp32 weights are gone).
@@ -76,11 +77,14 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.data.join import join_datasets
     from surftrack.model.train import train
 
-    lite = load_train_config("lite")
+    # stages 1-6 as the bundled model was trained, before data.canonical_twin existed (labels as drawn);
+    # stage 7, over the instrument's whole reach, labels the LND as one of its roll twins: both twins are
+    # drawn alike there and give the same image (docs/results/2026-12-05-roll-twin.md)
+    lite = load_train_config("lite").replace(data={"canonical_twin": False})
     half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
     # a converged model moved to a new pose distribution at half rates lost most of what it knew
     # (docs/decisions.md): stage 7 warms up over 500 steps to a quarter of the lite rates
-    quarter = lite.replace(optim={"lr_net": 7.5e-5, "lr_field": 7.5e-6, "warmup": 500})
+    quarter = lite.replace(optim={"lr_net": 7.5e-5, "lr_field": 7.5e-6, "warmup": 500}, data={"canonical_twin": True})
     # (config, data, steps): stage 1 from scratch, each later one from the previous stage's weights
     stages = [(lite.replace(optim={"schedule": "constant"}), "lnd400", 2000), (lite, "lnd2k", 3500),
               (half, "lnd2k", 3000), (half, "lnd4k", 7500), (half, "lnd8k_mix", 10000), (half, "lnd10k_mix", 10000),

@@ -533,6 +533,7 @@ def test_twin_labels_make_the_targets_a_function_of_the_image(root, bop):
     from surftrack.model.config import TrainConfig
     from surftrack.model.train import training_crops
 
-    made = training_crops(TrainConfig.from_dict({"data": {"crop": 64, "canonical_twin": True}}), bop, sorted(bop.models), 0)
-    assert made.twins == twins  # the training data section's switch, the objects read from the dataset card
-    assert training_crops(TrainConfig.from_dict({"data": {"crop": 64}}), bop, sorted(bop.models), 0).twins is None
+    made = training_crops(TrainConfig.from_dict({"data": {"crop": 64}}), bop, sorted(bop.models), 0)
+    assert made.twins == twins  # by default; the objects read from the dataset card
+    off = TrainConfig.from_dict({"data": {"crop": 64, "canonical_twin": False}})
+    assert training_crops(off, bop, sorted(bop.models), 0).twins is None

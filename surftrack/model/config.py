@@ -33,7 +33,9 @@ class DataCfg:
     min_visib_fract: float = 0.1
     augment: dict[str, Any] = field(default_factory=dict)
     real_data: str | None = None     # a second (real) BOP dataset with the same models, mixed into each batch
-    canonical_twin: bool = False     # label near-symmetric instruments as one roll twin, x axis away from the camera (data.twin_labels)
+    # label a near-symmetric instrument as one of its roll twins (shaft x axis away from the camera): both
+    # give the same image, so drawn alike they would give one crop two sets of targets (data.twin_labels)
+    canonical_twin: bool = True
     syn_real_ratio: tuple[int, int] = (1, 1)  # the paper's syn:real 1:1
 
 
