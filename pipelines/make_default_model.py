@@ -84,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
     # a converged model moved to a new pose distribution at half rates lost most of what it knew
     # (docs/decisions.md): stage 7 warms up over 500 steps to a quarter of the lite rates
-    quarter = lite.replace(optim={"lr_net": 7.5e-5, "lr_field": 7.5e-6, "warmup": 500}, data={"canonical_twin": True})
+    quarter = lite.replace(optim={"lr_net": 7.5e-5, "lr_field": 7.5e-6, "warmup": 500},
+                           data={"canonical_twin": True})
     # (config, data, steps): stage 1 from scratch, each later one from the previous stage's weights
     stages = [(lite.replace(optim={"schedule": "constant"}), "lnd400", 2000), (lite, "lnd2k", 3500),
               (half, "lnd2k", 3000), (half, "lnd4k", 7500), (half, "lnd8k_mix", 10000), (half, "lnd10k_mix", 10000),

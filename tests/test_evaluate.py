@@ -453,8 +453,8 @@ clips:
     row = [line for line in out.splitlines() if line.startswith("| c1 |")]
     assert len(row) == 1 and row[0].startswith("| c1 | 411 | 6 |") and "| shaft | wrist |" in out
     assert "c1: a short full-range clip" in (tmp_path / "e.suite.md").read_text()
-    rolls = {rec["joints_deg"]["roll"] for f in json.loads((tmp_path / "s" / "c2" / "gt.json").read_text())["frames"].values()
-             for rec in f["gt"] if rec["instrument_index"] == 0}
+    frames = json.loads((tmp_path / "s" / "c2" / "gt.json").read_text())["frames"].values()
+    rolls = {rec["joints_deg"]["roll"] for f in frames for rec in f["gt"] if rec["instrument_index"] == 0}
     assert all(150 <= r <= 170 for r in rolls)  # a tool rolled away from the camera, as asked
     assert json.loads((tmp_path / "s" / "c2" / "suite_clip.json").read_text())["roll_deg"] == [150, 170]
     assert "roll_deg" not in json.loads((tmp_path / "s" / "c1" / "suite_clip.json").read_text())

@@ -119,7 +119,8 @@ class CropDataset(Dataset):
         self._flip = ({k for k, f in enumerate(twins.flips(bop.instances)) if f} if twins is not None else set())
         lacking = sorted({twins.partner[bop.instances[k].obj_id] for k in self._flip} - set(self._part_index))
         if lacking:
-            raise DatasetError(f"{bop.root / bop.split}: twin labels name obj_ids {lacking} outside obj_ids {self.obj_ids}")
+            raise DatasetError(f"{bop.root / bop.split}: twin labels name obj_ids {lacking} outside obj_ids "
+                               f"{self.obj_ids}")
         self.targets = TargetRenderer(bop.models, self.cfg.size)  # GL created on first use, in the worker
 
     def set_epoch(self, epoch: int) -> None:

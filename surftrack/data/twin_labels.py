@@ -5,8 +5,8 @@ give the same image. Synthesis over the instrument's whole reach draws both equa
 would be labelled jaw_left half the time and jaw_right the other half, the shaft and wrist turned half a
 turn alike. :class:`TwinLabels` labels every such instance as the twin whose shaft x axis points away from
 the camera (roll within +-90 deg of synthesis's `view` zero, where the paper's ranges lie; the other twin's x
-axis points towards it), so that one image has one set of targets. A model trained so answers with that twin, and is scored up to the
-twin (``surftrack eval``'s ``add10_twin_surgripe``).
+axis points towards it), so that one image has one set of targets. A model trained so answers with that
+twin, and is scored up to the twin (``surftrack eval``'s ``add10_twin_surgripe``).
 """
 
 from __future__ import annotations
