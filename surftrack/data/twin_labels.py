@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surftrack.instruments import BUILTIN, HALF_TURN, InstrumentError, InstrumentRegistry, JointState
+from surftrack.instruments import BUILTIN, HALF_TURN, InstrumentError, InstrumentRegistry
+from surftrack.instruments.check import random_joint_states
 
 
 @dataclass(frozen=True)
@@ -68,11 +69,9 @@ def twin_labels(objects: Mapping[int, tuple[str, str]],
         if twin is None or not all(twin.partner.get(p, p) in ids for p in ids):
             continue  # a partner the dataset lacks: the twin's labels would name no model
         root = inst.part_names[0]
-        rng = np.random.default_rng(0)
-        reach = inst.reach()
         shared = set(inst.part_names)
-        for _ in range(4):
-            poses = inst.forward(np.eye(4), JointState(**{n: float(rng.uniform(*reach[n])) for n in reach}))
+        for q in random_joint_states(inst, 4):
+            poses = inst.forward(np.eye(4), q)
             shared &= {p for p in inst.part_names if np.allclose(poses[p][:3, 0], poses[root][:3, 0], atol=1e-9)}
         partner.update({ids[p]: ids[twin.partner[p]] for p in ids if p in twin.partner})
         axis.update(ids[p] for p in shared if p in ids)

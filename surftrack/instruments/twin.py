@@ -98,11 +98,10 @@ def find_roll_twin(instrument: Instrument, tol_mm: float = TWIN_TOL_MM, samples:
         partner[p], deviation[p] = best[1], best[0]
     if sorted(partner.values()) != sorted(names):
         return None  # not a permutation: two parts would claim the same partner
+    from surftrack.instruments.check import random_joint_states  # check imports the library, which imports this
+
     twin = RollTwin(partner, deviation)
-    rng = np.random.default_rng(0)
-    reach = instrument.reach()
-    for _ in range(4):
-        q = JointState(**{n: float(rng.uniform(*reach[n])) for n in reach})
+    for q in random_joint_states(instrument, 4):
         poses = {n: (T[:3, :3], T[:3, 3]) for n, T in instrument.forward(np.eye(4), q).items()}
         expect = instrument.forward(np.eye(4), RollTwin.joints(q))
         for n, (R, t) in twin.poses(poses).items():
