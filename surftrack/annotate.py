@@ -20,7 +20,7 @@ import contextlib
 import json
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -460,12 +460,20 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
     return score.summary(), score.tip_summary(), n / max(time.perf_counter() - t0, 1e-9)
 
 
+def _pooled(summary: Mapping[str, Mapping], parts: Sequence[str], key: str) -> float:
+    """A per-part percentage of :meth:`TrackScore.summary` (``key``) over the parts' visible frames pooled
+    (a part without it, as its instrument has no roll twin, counts with its ``add10_pct``)."""
+    hits = sum((summary[n][key] if summary[n][key] is not None else summary[n]["add10_pct"])
+               / 100.0 * summary[n]["visible_frames"] for n in parts)
+    return 100.0 * hits / max(sum(summary[n]["visible_frames"] for n in parts), 1)
+
+
 def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, Path], seeds: list[int],
                    preset: str = "fast", views: int = 0, kinematic: bool = True, device: str | None = None,
                    instruments: InstrumentRegistry = BUILTIN, progress: bool = False) -> dict[str, dict]:
     """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed:
     name -> {"frames": n, "parts": {part: ADD-10 % mean over seeds}, "per_seed": [ADD-10 % over all
-    part-frames, per seed]}, what :func:`surftrack.pose.suite.clip_table` prints. A part's column is its
+    part-frames, per seed], "per_seed_twin": the same with roll twins counted as a symmetry, or None}, what :func:`surftrack.pose.suite.clip_table` prints. A part's column is its
     name, or ``instrument.instance.part`` where several instruments are scored."""
     from surftrack.model.checkpoint import load_checkpoint
 
@@ -488,6 +496,7 @@ def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, 
             "frames": len(json.loads((folder / "gt.json").read_text())["frames"]),
             "parts": {label[n]: float(np.mean([r[n]["add10_pct"] for r in runs])) for n in parts},
             # pooled over part-frames: each part weighs by its visible frames
-            "per_seed": [100.0 * sum(r[n]["add10_pct"] / 100.0 * r[n]["visible_frames"] for n in parts)
-                         / max(sum(r[n]["visible_frames"] for n in parts), 1) for r in runs]}
+            "per_seed": [_pooled(r, parts, "add10_pct") for r in runs],
+            "per_seed_twin": ([_pooled(r, parts, "add10_twin_pct") for r in runs]
+                              if any(r[n]["add10_twin_pct"] is not None for r in runs for n in parts) else None)}
     return table

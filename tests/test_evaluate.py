@@ -452,6 +452,7 @@ clips:
     out = capsys.readouterr().out
     row = [line for line in out.splitlines() if line.startswith("| c1 |")]
     assert len(row) == 1 and row[0].startswith("| c1 | 411 | 6 |") and "| shaft | wrist |" in out
+    assert row[0].count("|") == 11 and "each frame's instrument scored as its estimate or" in out  # the LND's twin
     assert "c1: a short full-range clip" in (tmp_path / "e.suite.md").read_text()
     frames = json.loads((tmp_path / "s" / "c2" / "gt.json").read_text())["frames"].values()
     rolls = {rec["joints_deg"]["roll"] for f in frames for rec in f["gt"] if rec["instrument_index"] == 0}

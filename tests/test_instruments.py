@@ -539,3 +539,23 @@ def test_roll_twins_of_the_builtin_instruments(instruments, name, twin):
         assert np.allclose(R, expect[p][:3, :3]) and np.allclose(t, expect[p][:3, 3]), p
     with pytest.raises(ValueError, match="partners"):
         tw.poses({"jaw_left": poses["jaw_left"]})
+
+
+def test_the_nearer_of_poses_and_their_roll_twin():
+    """RollTwin.nearer: poses that are the twin of the truth come back turned onto it; the truth stays."""
+    from surftrack.instruments import load_instrument
+    from surftrack.instruments.kinematics import JointState
+
+    lnd = load_instrument("lnd")
+    twin = lnd.roll_twin
+    base = np.eye(4)
+    base[:3, 3] = [5.0, -3.0, 90.0]
+    truth = {p: (T[:3, :3], T[:3, 3]) for p, T in lnd.forward(base, JointState(0.4, 0.3, -0.2, 0.5)).items()}
+
+    def cost(part, R, t):
+        return float(np.linalg.norm(R - truth[part][0]) + np.linalg.norm(t - truth[part][1]))
+
+    chosen, turned = twin.nearer(twin.poses(truth), cost)
+    assert turned and all(cost(p, *pose) < 1e-9 for p, pose in chosen.items())
+    same, turned = twin.nearer(truth, cost)
+    assert not turned and all(cost(p, *pose) == 0.0 for p, pose in same.items())

@@ -13,7 +13,7 @@ from surftrack.cli import main
 from surftrack.io.video import read_video_frames
 from surftrack.pose.preset import PRESETS
 from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, projected_box
-from surftrack.track.clip_eval import ClipGroundTruth, TrackScore
+from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
 from surftrack.track.flow import SurfaceSamples, pnp_measurement, pose_distance, track_points, visible_points
 
 
@@ -864,6 +864,42 @@ def test_tool_tip_score_against_the_ground_truth(clip, lnd_parts):
     scored = [i for i in range(n) if max(gt.pose(i, lnd_parts[j])[2] for j in ("jaw_left", "jaw_right")) >= 100]
     dropped = score(drop=scored[len(scored) // 2])
     assert dropped["frames"] == exact["frames"] - 1 and dropped["path_gt_mm"] < exact["path_gt_mm"]
+
+
+def test_the_roll_twin_scores_as_a_symmetry_of_a_track(clip, lnd_parts):
+    """TrackScore: parts posed as the LND's roll twin of the truth (half a turn about the shaft, the jaws
+    exchanged: the same image) fail ADD-10 and pass it up to the twin; the truth passes both; a jaw posed
+    without the other has no twin (it counts as scored), and a part of an instrument without a twin has no
+    such figure."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track import PartState
+
+    lnd = load_instrument("lnd")
+    twin = lnd.roll_twin
+    gt = ClipGroundTruth(clip / "gt.json")
+    specs = [PartSpec(tid, k + 1, lnd.name, 0, p, lnd.parts[p].mesh.vertices, lnd.parts[p].mesh.faces)
+             for k, (p, tid) in enumerate(sorted(lnd_parts.items()))]
+    n = len(_frames(clip))
+
+    def score(turn, drop=None, instruments=(lnd,)):
+        s = TrackScore(gt, min_visible_px=20, instruments={i.name: i for i in instruments})
+        for i in range(n):
+            poses = {sp.part: tuple(gt.pose(i, sp.track_id)[:2]) for sp in specs}
+            if turn:
+                poses = twin.poses(poses)
+            s.add_frame(i, i / 10.0, [PartState(sp, "keyframe", 1.0, *(poses[sp.part] if sp.part != drop
+                                                                       else (None, None)), None) for sp in specs])
+        return s.summary()
+
+    turned = score(turn=True)
+    assert all(r["add10_twin_pct"] == 100.0 for r in turned.values())
+    assert all(r["add10_pct"] < 50.0 for part, r in turned.items() if part.endswith(("shaft", "wrist"))), turned
+    assert all(r["add10_pct"] == r["add10_twin_pct"] == 100.0 for r in score(turn=False).values())
+    one_jaw = score(turn=True, drop="jaw_right")
+    assert all(r["add10_twin_pct"] == r["add10_pct"] for r in one_jaw.values())
+    assert all(r["add10_twin_pct"] is None for r in score(turn=True, instruments=()).values())
+    table = format_summary(turned)
+    assert "ADD-10 up to the roll twin" in table and table.count(" 100.0 |\n") == 4
 
 
 def test_a_restarted_track_s_jump_is_no_motion_in_the_score(clip, lnd_parts):

@@ -17,7 +17,7 @@ z, origins on it); :func:`find_roll_twin` checks both on the meshes and the forw
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -61,6 +61,16 @@ class RollTwin:
             raise ValueError(f"the twin of {sorted(poses)} needs their partners too")
         return {self.partner[p]: (np.asarray(R) @ HALF_TURN, np.asarray(t, dtype=np.float64).copy())
                 for p, (R, t) in poses.items()}
+
+    def nearer(self, poses: Mapping[str, Pose], cost: Callable[[str, np.ndarray, np.ndarray], float]
+               ) -> tuple[dict[str, Pose], bool]:
+        """``poses`` (:meth:`closed`) or their twin, whichever has the smaller summed ``cost(part, R, t)``
+        (each part's error against its truth): the instrument scored with its twin counted as a symmetry,
+        as BOP scores a symmetric object. Returns the chosen poses and whether they are the twin's."""
+        turned = self.poses(poses)
+        same = sum(cost(p, *pose) for p, pose in poses.items())
+        other = sum(cost(p, *pose) for p, pose in turned.items())
+        return (turned, True) if other < same else (dict(poses), False)
 
     @staticmethod
     def joints(q: JointState) -> JointState:

@@ -344,16 +344,15 @@ def _score_twins(instances: Sequence, poses: Sequence, records: list[dict], poin
         twin = twins_of.get(name)
         if twin is None or not twin.closed(members) or not all(poses[i].ok for i in members.values()):
             continue
-        turned = twin.poses({part: (poses[i].R, poses[i].t) for part, i in members.items()})
-        same, other = {}, {}
+        def capped_add(part: str, R: np.ndarray, t: np.ndarray) -> float:
+            inst = instances[members[part]]
+            return min(pose_errors(R, t, inst.R, inst.t, points[inst.obj_id])["add"],
+                       parts_info[inst.obj_id]["diameter_surgripe_mm"])
+
+        chosen, _ = twin.nearer({part: (poses[i].R, poses[i].t) for part, i in members.items()}, capped_add)
         for part, i in members.items():
-            inst, d = instances[i], parts_info[instances[i].obj_id]["diameter_surgripe_mm"]
-            same[i] = min(records[i]["add"], d)
-            other[i] = min(pose_errors(*turned[part], inst.R, inst.t, points[inst.obj_id])["add"], d)
-        best = other if sum(other.values()) < sum(same.values()) else same
-        for i in members.values():
-            d = parts_info[instances[i].obj_id]["diameter_surgripe_mm"]
-            records[i]["add10_twin_surgripe"] = bool(best[i] < 0.1 * d)
+            records[i]["add10_twin_surgripe"] = bool(
+                capped_add(part, *chosen[part]) < 0.1 * parts_info[instances[i].obj_id]["diameter_surgripe_mm"])
 
 
 def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion_threshold: float) -> dict:

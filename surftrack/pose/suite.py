@@ -177,19 +177,25 @@ def make_suite_clips(clips: Sequence[SuiteClip], root: str | Path, instrument: s
 def clip_table(table: Mapping[str, Mapping], clips: Sequence[SuiteClip]) -> str:
     """Markdown: a row per clip (seed, frames), a column per part (ADD-10 % over the frames it is visible,
     mean over solver seeds), the part-frames pooled, and the pooled figure's range over the seeds.
-    ``table``: clip name -> {"frames": n, "parts": {part: mean ADD-10 %}, "per_seed": [pooled %]}."""
+    ``table``: clip name -> {"frames": n, "parts": {part: mean ADD-10 %}, "per_seed": [pooled %],
+    "per_seed_twin": [pooled % with the roll twin counted as a symmetry] or None (then no such column)}."""
     parts = list(dict.fromkeys(p for row in table.values() for p in row["parts"]))
-    head = ["clip", "seed", "frames", *parts, "all parts", "seed range"]
+    twin = any(row.get("per_seed_twin") for row in table.values())
+    head = ["clip", "seed", "frames", *parts, "all parts", "seed range", *(["up to the roll twin"] if twin else [])]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in clips:
         row = table[c.name]
         cells = [f"{row['parts'][p]:.1f}" if p in row["parts"] else "–" for p in parts]
+        extra = ([f"{np.mean(row['per_seed_twin']):.1f}" if row.get("per_seed_twin") else "–"] if twin else [])
         lines.append("| " + " | ".join([c.name, str(c.seed), str(row["frames"]), *cells,
                                         f"{np.mean(row['per_seed']):.1f}",
-                                        f"{min(row['per_seed']):.1f}-{max(row['per_seed']):.1f}"]) + " |")
+                                        f"{min(row['per_seed']):.1f}-{max(row['per_seed']):.1f}", *extra]) + " |")
     notes = [f"- {c.name}: {c.about}" for c in clips if c.about]
     return "\n".join(lines + ["", "Per-frame estimation on tracking clips: ADD-10 (%) over each part's visible "
-                               "frames (SurgRIPE diameter), mean over pose-solver seeds.", *notes]) + "\n"
+                               "frames (SurgRIPE diameter), mean over pose-solver seeds."
+                               + (" Up to the roll twin: all parts pooled, each frame's instrument scored as its "
+                                  "estimate or that estimate's half turn about the shaft, whichever is nearer the "
+                                  "truth." if twin else ""), *notes]) + "\n"
 
 
 def set_config(s: SuiteSet):

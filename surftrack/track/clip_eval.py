@@ -18,7 +18,9 @@ counts), with the share of steps that leaves; and split by cause (:func:`format_
 whose both ends are within ADD-10 (the smoother's own error), the excess over the others (the track wrong),
 and the restart jumps no path counts. Confidence calibration:
 ADD-10 of the frames whose confidence is >= 0.5 and of those below, and Spearman's rank correlation
-between confidence and ADD (negative when confidence predicts error).
+between confidence and ADD (negative when confidence predicts error). For a part of an instrument with a
+roll twin (:mod:`surftrack.instruments.twin`, one image cannot tell the two apart), ADD-10 also with the
+twin counted as a symmetry, chosen per frame for the instrument's posed parts together.
 """
 
 from __future__ import annotations
@@ -32,10 +34,18 @@ from scipy.stats import spearmanr
 
 from surftrack.eval import add, diameter_bbox_diagonal, re, te
 from surftrack.geometry import se3
-from surftrack.instruments import Instrument
+from surftrack.instruments import Instrument, RollTwin
 from surftrack.track.flow import pose_distance
 from surftrack.track.status import starts_anew
 from surftrack.track.tracker import PartState
+
+
+def _instrument_groups(states: list[PartState]) -> dict[tuple[str, int], list[PartState]]:
+    """A frame's part states per (instrument, instance)."""
+    groups: dict[tuple[str, int], list[PartState]] = {}
+    for s in states:
+        groups.setdefault((s.spec.instrument, s.spec.instance), []).append(s)
+    return groups
 
 
 class ClipGroundTruth:
@@ -74,12 +84,15 @@ class TrackScore:
     def add_frame(self, index: int, time_s: float, states: list[PartState]) -> None:
         fresh = {s.spec.name for s in states if starts_anew(s.status, s.info.as_dict())}
         for s in states:
-            name = s.spec.name
+            name, v = s.spec.name, s.spec.vertices
             if name not in self._pts:
-                v = s.spec.vertices
                 self._pts[name] = v if len(v) <= 2000 else v[np.random.default_rng(0).choice(len(v), 2000, False)]
                 self._diam[name] = diameter_bbox_diagonal(v)
-            row = self.rows.setdefault(name, {"re": [], "te": [], "add": [], "visible": 0, "posed": 0,
+        twin_add = self._twin_adds(index, states)
+        for s in states:
+            name = s.spec.name
+            row = self.rows.setdefault(name, {"instrument": s.spec.instrument, "re": [], "te": [], "add": [],
+                                              "add_twin": [], "visible": 0, "posed": 0,
                                               "jit_t": [], "jit_r": [], "conf": [], "step_est": [],
                                               "step_gt": [], "step_conf": [], "step_right": [], "jumps": []})
             Rg, tg, vis = self.gt.pose(index, s.spec.track_id)
@@ -96,6 +109,7 @@ class TrackScore:
             row["re"].append(re(s.R, Rg))
             row["te"].append(te(s.t, tg))
             row["add"].append(a)
+            row["add_twin"].append(twin_add.get(name, a))
             row["conf"].append(s.confidence)
             if prev is not None and prev[0] == index - 1 and prev[1] is not None:
                 dr, dt = pose_distance(prev[1], prev[2], s.R, s.t)
@@ -113,15 +127,37 @@ class TrackScore:
                 row["step_right"].append(a < limit and (prev[7] is None or prev[7] < limit))
         self._add_tips(index, time_s, states, fresh)
 
+    def _twin(self, instrument: str) -> RollTwin | None:
+        inst = self.instruments.get(instrument)
+        return inst.roll_twin if inst is not None else None
+
+    def _twin_adds(self, index: int, states: list[PartState]) -> dict[str, float]:
+        """Each posed part's ADD (mm, capped at its diameter) with its instrument's roll twin counted as a
+        symmetry (:meth:`RollTwin.nearer`: the poses or their twin, whichever is nearer the truth over the
+        instrument's posed parts), for the instruments given that have a twin and whose posed parts hold
+        their partners (a jaw posed without the other has no twin)."""
+        out: dict[str, float] = {}
+        for (name, _), group in _instrument_groups(states).items():
+            twin = self._twin(name)
+            posed = {s.spec.part: s for s in group if s.R is not None}
+            if twin is None or not posed or not twin.closed(posed):
+                continue
+            truth = {p: self.gt.pose(index, s.spec.track_id) for p, s in posed.items()}
+
+            def capped_add(part: str, R: np.ndarray, t: np.ndarray) -> float:
+                key = posed[part].spec.name
+                return min(add(R, t, truth[part][0], truth[part][1], self._pts[key]), self._diam[key])
+
+            chosen, _ = twin.nearer({p: (s.R, s.t) for p, s in posed.items()}, capped_add)
+            out.update({s.spec.name: capped_add(p, *chosen[p]) for p, s in posed.items()})
+        return out
+
     def _add_tips(self, index: int, time_s: float, states: list[PartState], fresh: set[str]) -> None:
         """The tool tip (:meth:`Instrument.tool_tip`) of each instrument in ``self.instruments``, from the
         frame's part poses and from the ground truth's, on frames where every tip-carrying part has a pose
         and one of them is visible; no step into a frame where one of its parts (names in ``fresh``)
         starts anew."""
-        groups: dict[tuple[str, int], list[PartState]] = {}
-        for s in states:
-            groups.setdefault((s.spec.instrument, s.spec.instance), []).append(s)
-        for (name, instance), group in groups.items():
+        for (name, instance), group in _instrument_groups(states).items():
             inst = self.instruments.get(name)
             if inst is None:
                 continue
@@ -169,6 +205,7 @@ class TrackScore:
             n = max(r["visible"], 1)
             ok = sum(a < 0.1 * self._diam[name] for a in r["add"])
             hit = np.asarray(r["add"]) < 0.1 * self._diam[name]
+            twin_ok = sum(a < 0.1 * self._diam[name] for a in r["add_twin"])
             conf = np.asarray(r["conf"])
             est = np.array([d for d, _ in r["step_est"]])
             true = np.asarray(r["step_gt"])
@@ -185,6 +222,7 @@ class TrackScore:
                 "te_median_mm": float(np.median(r["te"])) if r["te"] else float("nan"),
                 "add_mean_mm": float(np.mean(r["add"])) if r["add"] else float("nan"),
                 "add10_pct": 100.0 * ok / n,
+                "add10_twin_pct": 100.0 * twin_ok / n if self._twin(r["instrument"]) is not None else None,
                 "jitter_mm": float(np.mean(r["jit_t"])) if r["jit_t"] else float("nan"),
                 "jitter_deg": float(np.mean(r["jit_r"])) if r["jit_r"] else float("nan"),
                 "diameter_mm": self._diam[name],
@@ -233,17 +271,23 @@ def format_path_causes(summary: dict[str, dict]) -> str:
 
 
 def format_summary(summary: dict[str, dict]) -> str:
-    """A markdown table of :meth:`TrackScore.summary`."""
-    lines = ["| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) "
-             "| path est / gt (mm) | speed err (%) | path over conf >= 0.5 (share of steps %) "
-             "| ADD-10 conf >= / < 0.5 (%, share >=) | rho(conf, ADD) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    """A markdown table of :meth:`TrackScore.summary`; the last column, ADD-10 with the roll twin counted as
+    a symmetry, where some part's instrument has one."""
+    twin = any(r.get("add10_twin_pct") is not None for r in summary.values())
+    head = ("| part | visible | posed | RE med (deg) | TE med (mm) | ADD mean (mm) | ADD-10 (%) | jitter (mm / deg) "
+            "| path est / gt (mm) | speed err (%) | path over conf >= 0.5 (share of steps %) "
+            "| ADD-10 conf >= / < 0.5 (%, share >=) | rho(conf, ADD) |")
+    lines = [head + (" ADD-10 up to the roll twin (%) |" if twin else ""), "|---" * (14 if twin else 13) + "|"]
     for name, r in summary.items():
+        extra = ""
+        if twin:
+            extra = f" {r['add10_twin_pct']:.1f} |" if r.get("add10_twin_pct") is not None else " – |"
         lines.append(f"| {name} | {r['visible_frames']} | {r['posed_frames']} | {r['re_median_deg']:.1f} | "
                      f"{r['te_median_mm']:.1f} | {r['add_mean_mm']:.1f} | {r['add10_pct']:.1f} | "
                      f"{r['jitter_mm']:.2f} / {r['jitter_deg']:.2f} | {r['path_mm']:.0f} / {r['path_gt_mm']:.0f} "
                      f"= {r['path_ratio']:.2f} | {r['speed_err_pct']:.0f} | {r['path_conf_mm']:.0f} / "
                      f"{r['path_conf_gt_mm']:.0f} = {r['path_conf_ratio']:.2f} ({r['path_conf_share_pct']:.0f}) | "
                      f"{r['add10_conf_hi_pct']:.0f} / "
-                     f"{r['add10_conf_lo_pct']:.0f} ({r['conf_hi_share_pct']:.0f}) | {r['conf_add_spearman']:.2f} |")
+                     f"{r['add10_conf_lo_pct']:.0f} ({r['conf_hi_share_pct']:.0f}) | {r['conf_add_spearman']:.2f} |"
+                     + extra)
     return "\n".join(lines) + "\n"
