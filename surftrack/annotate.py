@@ -473,8 +473,9 @@ def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, 
                    instruments: InstrumentRegistry = BUILTIN, progress: bool = False) -> dict[str, dict]:
     """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed:
     name -> {"frames": n, "parts": {part: ADD-10 % mean over seeds}, "per_seed": [ADD-10 % over all
-    part-frames, per seed], "per_seed_twin": the same with roll twins counted as a symmetry, or None}, what :func:`surftrack.pose.suite.clip_table` prints. A part's column is its
-    name, or ``instrument.instance.part`` where several instruments are scored."""
+    part-frames, per seed], "per_seed_twin": the same with roll twins counted as a symmetry, or None}, what
+    :func:`surftrack.pose.suite.clip_table` prints. A part's column is its name, or
+    ``instrument.instance.part`` where several instruments are scored."""
     from surftrack.model.checkpoint import load_checkpoint
 
     model, train_cfg, _ = load_checkpoint(checkpoint, device or "cpu")

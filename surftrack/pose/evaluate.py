@@ -344,6 +344,7 @@ def _score_twins(instances: Sequence, poses: Sequence, records: list[dict], poin
         twin = twins_of.get(name)
         if twin is None or not twin.closed(members) or not all(poses[i].ok for i in members.values()):
             continue
+
         def capped_add(part: str, R: np.ndarray, t: np.ndarray) -> float:
             inst = instances[members[part]]
             return min(pose_errors(R, t, inst.R, inst.t, points[inst.obj_id])["add"],
