@@ -237,7 +237,8 @@ def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple 
     out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
     _check_outputs(video, boxes, Path(camera), model_path, out, opts, size, specs)
     estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
-                              crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
+                              crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale,
+                              instruments=opts.instruments)
     config = opts.config.for_fps(info.fps)  # the keyframe bound in seconds, as frames of this video
     tracker = Tracker(estimator, cam.K, size, specs, config, opts.instruments)
     det_times = {} if doc.get("meta", {}).get("converted_from") == "coco" else \
@@ -427,7 +428,7 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
 
     clip, boxes = Path(clip), Path(boxes)
     est = PoseEstimator(model, cfg.estimator_preset(), device=device, crop_size=train_cfg.data.crop,
-                        box_scale=train_cfg.data.scale)
+                        box_scale=train_cfg.data.scale, instruments=instruments)
     K = np.asarray(json.loads((clip / "camera.json").read_text())["K"], np.float64)
     det = json.loads(boxes.read_text())
     per_frame = {f["index"]: f["detections"] for f in det["frames"]}
@@ -447,9 +448,11 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
                     d["part_id"] not in best or d["score"] > best[d["part_id"]][1]):
                 best[d["part_id"]] = (tuple(d["bbox"]), d["score"])
         pids = sorted(best)
-        res = est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K) if pids else []
+        groups = [specs[p].instance for p in pids]
+        res = (est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K,
+                            groups=groups if cfg.twin_boxes else None) if pids else [])
         if kin is not None:
-            res = apply_kinematics(res, [specs[p].instance for p in pids], model.parts, kin)
+            res = apply_kinematics(res, groups, model.parts, kin)
         got = {p: r for p, r in zip(pids, res) if r.ok}
         states = [PartState(s, "keyframe" if p in got else "lost",
                             float(1.0 - np.exp(-max(got[p].score, 0.0))) if p in got else 0.0,

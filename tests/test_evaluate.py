@@ -105,7 +105,7 @@ class _Oracle(PoseEstimator):
         self.gt, self.perturb = gt, perturb
         self.names = {p.obj_id: (p.name, p.instrument) for p in self.model.parts}
 
-    def estimate_batch(self, images, boxes_per_image, Ks):
+    def estimate_batch(self, images, boxes_per_image, Ks, priors=None, groups=None):
         out = []
         for i, boxes in enumerate(boxes_per_image):
             poses = []
@@ -165,7 +165,7 @@ def test_the_roll_twin_is_scored_as_a_symmetry(tiny):
     partner = {"shaft": "shaft", "wrist": "wrist", "jaw_left": "jaw_right", "jaw_right": "jaw_left"}
 
     class Twin(_Oracle):
-        def estimate_batch(self, images, boxes_per_image, Ks):
+        def estimate_batch(self, images, boxes_per_image, Ks, priors=None, groups=None):
             out = []
             for i, boxes in enumerate(boxes_per_image):
                 insts = [self.gt[(o, tuple(b))] for o, b in boxes]

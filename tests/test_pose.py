@@ -232,6 +232,33 @@ def test_estimator_merges_crop_views(tiny_model):
         assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t) and a.counts == b.counts
 
 
+def test_twin_jaws_trade_boxes_by_score(tiny_model):
+    """The LND's jaws are each other's roll twin's: with instrument groups each jaw is also estimated on
+    the other jaw's box, and the assignment with the larger summed score is kept, the results keeping their
+    boxes' order and labels. So the jaws' poses do not depend on which of the two boxes carries which label;
+    other parts, and jaws of different instruments, are estimated as without groups."""
+    img = np.random.default_rng(5).integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    est = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64)
+    assert est.twin_partner == {3: 4, 4: 3}
+    a, b = (530.0, 260.0, 40.0, 30.0), (560.0, 250.0, 50.0, 40.0)
+    boxes = [(1, BOXES[1]), (2, BOXES[2]), (3, a), (4, b)]
+    plain = est.estimate(img, boxes, K_LND)
+    crossed = est.estimate(img, [(3, b), (4, a)], K_LND)
+    paired = est.estimate(img, boxes, K_LND, groups=[0, 0, 0, 0])
+    relabelled = est.estimate(img, [(1, BOXES[1]), (2, BOXES[2]), (3, b), (4, a)], K_LND, groups=[0, 0, 0, 0])
+    swap = crossed[0].score + crossed[1].score > plain[2].score + plain[3].score
+    expect = crossed if swap else plain[2:]
+    assert [p.obj_id for p in paired] == [p.obj_id for p in relabelled] == [1, 2, 3, 4]
+    for got, again, want in zip(paired[2:], relabelled[2:], expect):
+        assert np.allclose(got.R, want.R) and np.allclose(got.t, want.t) and got.crop_box == want.crop_box
+        assert np.allclose(again.R, want.R) and np.allclose(again.t, want.t)
+    for got, want in zip(paired[:2], plain[:2]):
+        assert np.allclose(got.R, want.R) and np.allclose(got.t, want.t)
+    apart = est.estimate(img, boxes, K_LND, groups=[0, 0, 0, 1])  # jaws of two instruments: no trade
+    for got, want in zip(apart, plain):
+        assert np.allclose(got.R, want.R) and np.allclose(got.t, want.t)
+
+
 def test_estimator_from_checkpoint(tiny_model, tmp_path):
     from surftrack.model import save_checkpoint
     from surftrack.model.config import TrainConfig

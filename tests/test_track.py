@@ -117,7 +117,7 @@ class _GroundTruthEstimator:
         a = np.radians(shaft_roll_deg)
         self.roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
-    def estimate(self, image, boxes, K, priors=None):
+    def estimate(self, image, boxes, K, priors=None, groups=None):
         from surftrack.pose.estimator import PartPose
 
         out = []
@@ -214,8 +214,8 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
     hidden: set[str] = set()
 
     class Hiding(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None):
-            out = super().estimate(image, boxes, K, priors)
+        def estimate(self, image, boxes, K, priors=None, groups=None):
+            out = super().estimate(image, boxes, K, priors, groups)
             return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part in hidden else r for r in out]
 
     est = Hiding(model, gt, lnd_parts, 0.0)
@@ -259,8 +259,8 @@ def test_a_part_its_own_estimate_misses_is_measured_through_the_instrument_fit(c
                                                         for j in range(k - 1, k + n)))
 
     class Unseen(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None):
-            out = super().estimate(image, boxes, K, priors)
+        def estimate(self, image, boxes, K, priors=None, groups=None):
+            out = super().estimate(image, boxes, K, priors, groups)
             return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part == "shaft" else r for r in out]
 
     est = Unseen(model, gt, lnd_parts, 0.0)
@@ -689,7 +689,7 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
         def __init__(self):
             self.model, self.frame = model, 0
 
-        def estimate(self, image, boxes, K, priors=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None):
             score, inliers = next(script)
             R, t, _ = gt.pose(self.frame, tid)
             return [PartPose(o, info.name, info.instrument, R, t, score, inliers, True, {}, (0, 0, 1, 1), np.eye(3))
@@ -727,7 +727,7 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
         def __init__(self):
             self.model, self.shift = model, np.zeros(3)
 
-        def estimate(self, image, boxes, K, priors=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None):
             return [PartPose(o, info.name, info.instrument, R, t + self.shift, 5.0, 200, True, {}, (0, 0, 1, 1),
                              np.eye(3)) for o, _ in boxes]
 

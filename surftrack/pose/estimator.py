@@ -19,14 +19,16 @@ from __future__ import annotations
 import dataclasses
 import time
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from surftrack.data.twin_labels import twin_labels
 from surftrack.geometry import Box, PinholeCamera, crop_affine, square_crop_box, warp_image
+from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.model.checkpoint import load_checkpoint
 from surftrack.model.config import DataCfg
 from surftrack.model.surfsurg6d import SurfSurg6D
@@ -122,7 +124,8 @@ class PoseEstimator:
 
     def __init__(self, model: SurfSurg6D | str | Path, preset: str | Preset = "accurate",
                  device: str | torch.device | None = None, crop_size: int | None = None,
-                 box_scale: float | None = None, solver_threads: int | None = 1):
+                 box_scale: float | None = None, solver_threads: int | None = 1,
+                 instruments: InstrumentRegistry = BUILTIN):
         self.device = torch.device(device) if device is not None else \
             torch.device("cuda" if torch.cuda.is_available() else "cpu")
         self.preset = get_preset(preset)
@@ -140,6 +143,9 @@ class PoseEstimator:
         if solver_threads is not None and int(solver_threads) < 1:
             raise ValueError(f"solver_threads must be >= 1 or None, got {solver_threads}")
         self.solver_threads = None if solver_threads is None else int(solver_threads)
+        twins = twin_labels({p.obj_id: (p.instrument, p.name) for p in self.model.parts}, instruments)
+        # obj id -> the part its instrument's roll twin shows in its place (jaw_left <-> jaw_right)
+        self.twin_partner = {} if twins is None else {a: b for a, b in twins.partner.items() if a != b}
 
     @property
     def obj_ids(self) -> list[int]:
@@ -200,27 +206,28 @@ class PoseEstimator:
 
     # ------------------------------------------------------------------ estimation
     def estimate(self, image: np.ndarray, boxes, K: np.ndarray,
-                 priors: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None) -> list[PartPose]:
+                 priors: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
+                 groups: Sequence[Hashable] | None = None) -> list[PartPose]:
         """Poses of the parts in ``boxes`` (dict obj_id -> (x, y, w, h), or a list of (obj_id, box) for
         repeated ids) seen in ``image`` ((H, W, 3) uint8 RGB) with intrinsics ``K``; one
         :class:`PartPose` per box, in order. ``priors`` (obj_id -> (R, t), or a list aligned with a list
         of boxes, None entries allowed): poses known from elsewhere (a tracker's), scored with the
-        hypotheses and kept when they explain the image best."""
-        return self.estimate_batch([image], [boxes], [K], None if priors is None else [priors])[0]
+        hypotheses and kept when they explain the image best. ``groups`` (one instrument-instance key per
+        box): lets the twin parts of one instrument trade boxes (:meth:`_twin_pairs`)."""
+        return self.estimate_batch([image], [boxes], [K], None if priors is None else [priors],
+                                   None if groups is None else [groups])[0]
 
     @torch.inference_mode()
     def estimate_batch(self, images: Sequence[np.ndarray], boxes_per_image: Sequence,
-                       Ks: Sequence, priors: Sequence[Mapping | None] | None = None) -> list[list[PartPose]]:
+                       Ks: Sequence, priors: Sequence[Mapping | None] | None = None,
+                       groups: Sequence[Sequence[Hashable] | None] | None = None) -> list[list[PartPose]]:
         """:meth:`estimate` for several frames; all crops share the network forward passes."""
-        crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
-        if not crops:
-            return [[] for _ in images]
-        masks, queries, fwd_ms = self._forward(crops)
-        return self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, self.preset.seed)
+        return self.estimate_batch_seeds(images, boxes_per_image, Ks, [self.preset.seed], priors, groups)[0]
 
     @torch.inference_mode()
     def estimate_batch_seeds(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
-                             seeds: Sequence[int], priors: Sequence[Mapping | None] | None = None
+                             seeds: Sequence[int], priors: Sequence[Mapping | None] | None = None,
+                             groups: Sequence[Sequence[Hashable] | None] | None = None
                              ) -> list[list[list[PartPose]]]:
         """:meth:`estimate_batch` once per solver seed in ``seeds`` (distinct, >= 0; the preset's seed
         replaced), from one network forward: ``result[s][i]`` are image ``i``'s poses under ``seeds[s]``,
@@ -228,11 +235,77 @@ class PoseEstimator:
         to the solver's random draws at the cost of one forward. The ``forward`` and ``crop`` timings are
         reported in every seed's poses."""
         seeds = check_seeds(seeds)
+        boxes_per_image, priors, pairs = self._with_twin_boxes(boxes_per_image, priors, groups)
         crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
         if not crops:
             return [[[] for _ in images] for _ in seeds]
         masks, queries, fwd_ms = self._forward(crops)
-        return [self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, s) for s in seeds]
+        return [[self._pick_twin_boxes(poses, n, p) for poses, (n, p) in
+                 zip(self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, s), pairs)]
+                for s in seeds]
+
+    # ------------------------------------------------------------------ twin parts
+    def _twin_pairs(self, obj_ids: Sequence[int], groups: Sequence[Hashable]) -> list[tuple[int, int]]:
+        """Index pairs (a, b) of boxes of one instrument instance (same ``groups`` key) whose parts are
+        each other's roll twin's (``twin_partner``: the LND's jaws). Beyond a quarter turn of roll the
+        model, trained on one twin's labels, calls the part in box a the part of box b, and a decoder run
+        on the other's box sees its part off-centre (the jaws lost 6-8 points ADD-10 to this on the
+        full-reach suite set): each pair is therefore also estimated crossed."""
+        pairs = []
+        for a, (oa, ga) in enumerate(zip(obj_ids, groups)):
+            for b in range(a + 1, len(obj_ids)):
+                if groups[b] == ga and self.twin_partner.get(oa) == obj_ids[b]:
+                    pairs.append((a, b))
+        return pairs
+
+    def _with_twin_boxes(self, boxes_per_image: Sequence, priors: Sequence | None,
+                         groups: Sequence | None) -> tuple[list, list | None, list[tuple[int, list]]]:
+        """Each image's boxes with the crossed twin boxes appended (part a on box b, part b on box a, per
+        pair), its priors to match, and per image (number of boxes asked, pairs)."""
+        out_boxes, out_priors, pairs = [], ([] if priors is not None else None), []
+        for i, boxes in enumerate(boxes_per_image):
+            items = list(boxes.items()) if isinstance(boxes, Mapping) else boxes
+            g = groups[i] if groups is not None else None
+            try:
+                p = (self._twin_pairs([int(o) for o, _ in items], g)
+                     if g is not None and self.twin_partner and len(g) == len(items) else [])
+            except (TypeError, ValueError):
+                p = []  # malformed boxes: _crops says what is wrong with them
+            pri = priors[i] if priors is not None else None
+            if p:
+                items = list(items)
+                n = len(items)
+                items += [x for a, b in p for x in ((items[a][0], items[b][1]), (items[b][0], items[a][1]))]
+                if pri is not None and not isinstance(pri, Mapping):
+                    pri = list(pri) + [x for a, b in p for x in (pri[a], pri[b])]
+                pairs.append((n, p))
+            else:
+                pairs.append((len(items), []))
+            out_boxes.append(items if p else boxes)
+            if out_priors is not None:
+                out_priors.append(pri)
+        return out_boxes, out_priors, pairs
+
+    @staticmethod
+    def _pick_twin_boxes(poses: list[PartPose], n: int, pairs: list[tuple[int, int]]) -> list[PartPose]:
+        """The ``n`` asked poses, each twin pair's taken crossed where the crossed crops' summed score is
+        the higher (a failed estimate counts as -inf); the discarded crops' timings are added to the kept
+        ones'."""
+        def total(x: PartPose, y: PartPose) -> float:
+            return x.score + y.score if x.ok and y.ok else -np.inf
+
+        kept = list(poses[:n])
+        for k, (a, b) in enumerate(pairs):
+            a_on_b, b_on_a = poses[n + 2 * k], poses[n + 2 * k + 1]
+            if total(a_on_b, b_on_a) > total(kept[a], kept[b]):
+                kept[a], kept[b], lost = a_on_b, b_on_a, (kept[a], kept[b])
+            else:
+                lost = (a_on_b, b_on_a)
+            for i, other in zip((a, b), lost):
+                ms = {st: kept[i].timings.get(st, 0.0) + other.timings.get(st, 0.0)
+                      for st in set(kept[i].timings) | set(other.timings)}
+                kept[i] = dataclasses.replace(kept[i], timings=ms)
+        return kept
 
     def _crops(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
                priors: Sequence[Mapping | None] | None) -> tuple[list[_Crop], float]:

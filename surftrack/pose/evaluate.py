@@ -225,7 +225,8 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         raise ValueError(f"occlusion_threshold must be in (0, 1], got {occlusion_threshold}")
     if images_per_batch < 1:
         raise ValueError(f"images_per_batch must be >= 1, got {images_per_batch}")
-    est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(checkpoint, preset, device=device)
+    est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(checkpoint, preset, device=device,
+                                                                                instruments=instruments)
     if kinematic is True:
         kinematic = KinematicConfig()
     if kinematic:
@@ -296,14 +297,15 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         boxes = [[(i.obj_id, box_from_bop(i.bbox_visib)) for i in by_image[k]] for k in chunk]
         Ks = [by_image[k][0].K for k in chunk]
         t0 = time.perf_counter()
-        by_seed = est.estimate_batch_seeds(imgs, boxes, Ks, seeds) if shared else [est.estimate_batch(imgs, boxes, Ks)]
+        groups = [_instrument_groups(by_image[k]) for k in chunk]
+        by_seed = (est.estimate_batch_seeds(imgs, boxes, Ks, seeds, groups=groups) if shared
+                   else [est.estimate_batch(imgs, boxes, Ks, groups=groups)])
         est_s = time.perf_counter() - t0
         for sd, poses in zip(seeds, by_seed):
             t0 = time.perf_counter()
             if kinematic:  # timed with the estimator: it is part of what the tracker outputs
-                poses = [apply_kinematics(pl, _instrument_groups(by_image[k]), est.model.parts, kinematic,
-                                          instruments)
-                         for k, pl in zip(chunk, poses)]
+                poses = [apply_kinematics(pl, g, est.model.parts, kinematic, instruments)
+                         for g, pl in zip(groups, poses)]
             kin_s = time.perf_counter() - t0
             for k, plist in zip(chunk, poses):
                 # one forward for all seeds: each seed's time is its poses' stage timings (forward included)

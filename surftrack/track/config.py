@@ -99,6 +99,12 @@ class TrackConfig:
     ``confidence_scale`` (1.5 split ADD-10 best at confidence 0.5 on the development clips 3, 12 and 22;
     the filter's covariance alone is overconfident).
 
+    ``twin_boxes``: the jaws of a grasper with a roll twin are also estimated on each other's boxes and the
+    better-scoring assignment kept (:meth:`surftrack.pose.PoseEstimator.estimate`'s ``groups``): beyond a
+    quarter turn of roll a box's label names the other jaw to the model. Off by default: two more crops
+    per such keyframe made tracking 20 % slower on clips in the view's roll range, where it changed
+    nothing beyond the runs' spread; on tools rolled away the jaws gain (docs/results/2026-12-05-stage7.md).
+
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
@@ -112,6 +118,7 @@ class TrackConfig:
     keyframe_max_s: float = 0.34
     flow: bool = False
     region: bool = True
+    twin_boxes: bool = False
     region_points: int = 100
     region_min_agreement: float = 0.7
     region_learn_rate: float = 0.2

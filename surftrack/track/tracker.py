@@ -663,11 +663,13 @@ class Tracker:
         fused, restarted, held or dropped."""
         cfg, K = self.cfg, self.K
         t_est = time.perf_counter()
+        groups = [tr.spec.instance for tr, _, _, _ in requests]
         results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
-                                          priors=[p for _, _, p, _ in requests])
+                                          priors=[p for _, _, p, _ in requests],
+                                          groups=groups if cfg.twin_boxes else None)
         if self._kinematic is not None:
-            results = apply_kinematics(results, [tr.spec.instance for tr, _, _, _ in requests],
-                                       self.estimator.model.parts, self._kinematic, self.instruments)
+            results = apply_kinematics(results, groups, self.estimator.model.parts, self._kinematic,
+                                       self.instruments)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
         # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
         # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
