@@ -482,7 +482,8 @@ def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, 
     from surftrack.model.checkpoint import load_checkpoint
 
     model, train_cfg, _ = load_checkpoint(checkpoint, device or "cpu")
-    base = TrackConfig(preset=preset, views=views, kinematic=kinematic)
+    # the estimator's figures: its jaws' box assignment on, as in ``surftrack eval``'s image sets
+    base = TrackConfig(preset=preset, views=views, kinematic=kinematic, twin_boxes=True)
     table = {}
     for name in names:
         folder = Path(folders[name])
