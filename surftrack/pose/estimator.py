@@ -264,23 +264,20 @@ class PoseEstimator:
         pair), its priors to match, and per image (number of boxes asked, pairs)."""
         out_boxes, out_priors, pairs = [], ([] if priors is not None else None), []
         for i, boxes in enumerate(boxes_per_image):
-            items = list(boxes.items()) if isinstance(boxes, Mapping) else boxes
             g = groups[i] if groups is not None else None
             try:
+                items = list(boxes.items()) if isinstance(boxes, Mapping) else list(boxes)
+                n = len(items)
                 p = (self._twin_pairs([int(o) for o, _ in items], g)
-                     if g is not None and self.twin_partner and len(g) == len(items) else [])
+                     if g is not None and self.twin_partner and len(g) == n else [])
             except (TypeError, ValueError):
-                p = []  # malformed boxes: _crops says what is wrong with them
+                n, p = 0, []  # malformed boxes: _crops says what is wrong with them
             pri = priors[i] if priors is not None else None
             if p:
-                items = list(items)
-                n = len(items)
                 items += [x for a, b in p for x in ((items[a][0], items[b][1]), (items[b][0], items[a][1]))]
                 if pri is not None and not isinstance(pri, Mapping):
                     pri = list(pri) + [x for a, b in p for x in (pri[a], pri[b])]
-                pairs.append((n, p))
-            else:
-                pairs.append((len(items), []))
+            pairs.append((n, p))
             out_boxes.append(items if p else boxes)
             if out_priors is not None:
                 out_priors.append(pri)
