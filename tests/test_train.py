@@ -276,3 +276,60 @@ def test_cli_train_workers(tiny_data, tmp_path):
     assert main(args + ["--out", str(tmp_path / "w.pt"), "--workers", "-1"]) == 2
     assert main(args + ["--out", str(tmp_path / "w.pt"), "--workers", "1"]) == 0
     assert load_checkpoint(tmp_path / "w.pt")[2]["step"] == 2
+
+
+def test_twin_loss_keeps_each_crops_better_labels(tiny_data, tmp_path):
+    """``data.twin_loss``: each crop is scored against its own and its roll twin's labels and only the
+    smaller of the two mask + penNCE losses counts (and gets a gradient); the network runs once per
+    distinct (crop, part), the same as on explicitly repeated crops; a short run trains with it."""
+    from surftrack.data.bop import BopDataset
+    from surftrack.model import losses
+    from surftrack.model.config import TrainConfig
+    from surftrack.model.surfsurg6d import PartInfo, SurfSurg6D
+    from surftrack.model.train import LossForward, Trainer, training_crops
+
+    cfg = TrainConfig.from_dict(TINY).replace(data={"twin_loss": True})
+    bop = BopDataset(tiny_data, "train")
+    obj_ids = sorted(bop.models)
+    torch.manual_seed(0)
+    model = SurfSurg6D([PartInfo.from_part(o, "large_needle_driver", bop.models[o]) for o in obj_ids], cfg.model)
+    ds = training_crops(cfg, bop, obj_ids, seed=0)
+    batch = {k: torch.stack([ds[i][k] for i in range(4)]) for k in ds[0]}
+    assert (batch["twin_part_index"] >= 0).all()
+
+    model.eval()
+    fwd = LossForward(model)
+    src = torch.tensor([0, 1, 2, 3, 1, 3])
+    part = torch.cat([batch["part_index"], batch["twin_part_index"][[1, 3]]])
+    pts = torch.rand(6, 5, 3) * 0.5
+    m, q, k = fwd(batch["image"], part, pts, src)
+    m2, q2, k2 = fwd(batch["image"][src], part, pts)
+    assert torch.allclose(m, m2, atol=1e-5) and torch.allclose(q, q2, atol=1e-5) and torch.equal(k, k2)
+
+    # _twin_min on made-up rows: crops 0 and 2 have a twin (rows 3 and 4), crop 1 has none
+    B, alt = 3, torch.tensor([0, 2])
+    g = torch.Generator().manual_seed(1)
+    logits = torch.randn(5, 8, 8, generator=g, requires_grad=True)
+    target = (torch.rand(5, 8, 8, generator=g) > 0.5).float()
+    qr, kp, kn = (torch.randn(5, n, 6, generator=g) for n in (7, 7, 9))
+    cq, cn = torch.rand(5, 7, 3, generator=g) * 0.5, torch.rand(5, 9, 3, generator=g) * 0.5
+    empty = torch.zeros(5, dtype=torch.bool)
+    trainer = Trainer(model, cfg, torch.device("cpu"))
+    out = trainer._twin_min(logits, target, qr, kp, kn, cq, cn, empty, alt, B)
+    per_row = torch.stack([losses.mask_bce(logits[r], target[r]) + losses.pen_nce(
+        qr[r:r + 1], kp[r:r + 1], kn[r:r + 1], cq[r:r + 1], cn[r:r + 1], cfg.loss.alpha, floor=cfg.loss.pen_floor)
+        for r in range(5)])
+    best = torch.stack([torch.minimum(per_row[0], per_row[3]), per_row[1], torch.minimum(per_row[2], per_row[4])])
+    con = losses.consistency_loss(cn[:B], kn[:B], lam=cfg.loss.lam, m=cfg.loss.m)
+    assert torch.allclose(out["total"], best.mean() + cfg.loss.beta * con, atol=1e-5)
+    chosen = [bool(per_row[3] < per_row[0]), bool(per_row[4] < per_row[2])]
+    assert float(out["twin_chosen"]) == pytest.approx(sum(chosen) / 3)
+    out["total"].backward()
+    gets = logits.grad.abs().flatten(1).sum(1) > 0
+    assert gets.tolist() == [not chosen[0], True, not chosen[1], chosen[0], chosen[1]]
+
+    run = train(cfg.replace(optim={"steps": 3}, run={"val_every": 3, "ckpt_every": 100}), tiny_data,
+                tmp_path / "t.pt", progress=False)
+    rows = [json.loads(l) for l in (tmp_path / "t.metrics.jsonl").read_text().splitlines()]
+    assert all(0.0 <= r["twin_chosen"] <= 1.0 and np.isfinite(r["total"]) for r in rows if r["kind"] == "train")
+    assert "twin_chosen" in run["val"]
