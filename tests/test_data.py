@@ -537,33 +537,3 @@ def test_twin_labels_make_the_targets_a_function_of_the_image(root, bop):
     assert made.twins == twins  # by default; the objects read from the dataset card
     off = TrainConfig.from_dict({"data": {"crop": 64, "canonical_twin": False}})
     assert training_crops(off, bop, sorted(bop.models), 0).twins is None
-
-
-def test_twin_targets_carry_the_other_twins_labels_of_the_same_pixels(root, bop):
-    """With ``twin_targets`` each crop also carries its instrument's other roll twin's labels: for the
-    images annotated as the twin, exactly the labels the canonical dataset gives as its own (the other
-    jaw's part index and targets, the shaft and wrist turned half a turn), on the same pixels."""
-    import copy
-    import dataclasses
-
-    from surftrack.data.twin_labels import twin_labels
-    from surftrack.instruments import HALF_TURN
-
-    objects = json.loads((root / "dataset_card.json").read_text())["objects"]
-    twins = twin_labels({int(o): (v["instrument"], v["part"]) for o, v in objects.items()})
-    turned = copy.copy(bop)
-    turned.instances = [dataclasses.replace(i, obj_id=twins.partner[i.obj_id], R=i.R @ HALF_TURN)
-                        for i in bop.instances]
-    canonical = CropDataset(bop, crop_size=64, seed=1, twins=twins, twin_targets=True)
-    as_given = CropDataset(turned, crop_size=64, seed=1)
-    changed = 0
-    for k in range(len(canonical)):
-        a, c = canonical[k], as_given[k]
-        assert int(a["twin_part_index"]) == int(c["part_index"])
-        assert torch.allclose(a["twin_coord_norm"], c["coord_norm"], atol=1e-5)
-        assert torch.equal(a["twin_coord_valid"], c["coord_valid"])
-        assert torch.equal(a["twin_mask_train"], c["mask_train"])
-        changed += not torch.allclose(a["twin_coord_norm"], a["coord_norm"], atol=1e-3)
-    assert changed == len(canonical)  # a real second labelling for every part of the LND
-    with pytest.raises(ValueError, match="twin_targets needs twins"):
-        CropDataset(bop, crop_size=64, twin_targets=True)

@@ -91,19 +91,13 @@ class CropDataset(Dataset):
         angle () float32                in-plane rotation of the crop (rad)
 
     ``twins``: label near-symmetric instruments as one of their two roll twins (:mod:`surftrack.data.twin_labels`;
-    the item's obj_id, part_index, pose and targets are then the twin's). With ``twin_targets`` as well,
-    every item also carries the other twin's labels of the same pixels, for a loss that takes the better
-    of the two (:meth:`surftrack.model.train.Trainer.losses`)::
-
-        twin_part_index  int64 scalar      the other twin's part index; -1 for a part without a twin
-        twin_coord_norm, twin_coord_valid, twin_mask_train   as above, for the other twin
-                                           (copies of the item's own where it has none)
+    the item's obj_id, part_index, pose and targets are then the twin's).
     """
 
     def __init__(self, bop: BopDataset, obj_ids: list[int] | None = None, crop_size: int = 224,
                  scale: float = 1.2, jitter: float = 0.0, max_rotation_deg: float = 0.0,
                  augment: AugmentConfig | dict | None = None, mask_mode: str = "amodal", box: str = "visib",
-                 seed: int = 0, twins: TwinLabels | None = None, twin_targets: bool = False):
+                 seed: int = 0, twins: TwinLabels | None = None):
         self.bop = bop
         self.cfg = CropConfig(int(crop_size), float(scale), float(jitter), float(max_rotation_deg), box, mask_mode)
         self.obj_ids = [int(o) for o in (obj_ids if obj_ids is not None else sorted(bop.models))]
@@ -122,13 +116,8 @@ class CropDataset(Dataset):
         self.seed = int(seed)
         self.epoch = 0
         self.twins = twins
-        if twin_targets and twins is None:
-            raise ValueError("twin_targets needs twins (the instruments' roll-twin labels)")
-        self.twin_targets = bool(twin_targets)
         self._flip = ({k for k, f in enumerate(twins.flips(bop.instances)) if f} if twins is not None else set())
-        relabelled = ([k for k in self.items if bop.instances[k].obj_id in twins.partner] if self.twin_targets
-                      else self._flip)
-        lacking = sorted({twins.partner[bop.instances[k].obj_id] for k in relabelled} - set(self._part_index))
+        lacking = sorted({twins.partner[bop.instances[k].obj_id] for k in self._flip} - set(self._part_index))
         if lacking:
             raise DatasetError(f"{bop.root / bop.split}: twin labels name obj_ids {lacking} outside obj_ids "
                                f"{self.obj_ids}")
@@ -172,7 +161,7 @@ class CropDataset(Dataset):
         amodal = tg.valid
         train = amodal if cfg.mask_mode == "amodal" else modal
         i64 = lambda v: torch.tensor(int(v), dtype=torch.int64)  # noqa: E731
-        item = {
+        return {
             "image": normalise_image(image),
             "mask_modal": torch.from_numpy(modal.astype(np.float32)),
             "mask_amodal": torch.from_numpy(amodal.astype(np.float32)),
@@ -191,23 +180,6 @@ class CropDataset(Dataset):
             "bbox": torch.tensor(box, dtype=torch.float32),
             "angle": torch.tensor(angle, dtype=torch.float32),
         }
-        if self.twin_targets:
-            item.update(self._twin_targets(obj_id, pose, R_crop, crop_cam, modal, item))
-        return item
-
-    def _twin_targets(self, obj_id: int, pose: np.ndarray, R_crop: np.ndarray, crop_cam, modal: np.ndarray,
-                      item: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """The other roll twin's part index and targets of an item's pixels (its own where it has none)."""
-        if obj_id not in self.twins.partner:
-            return {"twin_part_index": torch.tensor(-1, dtype=torch.int64),
-                    **{f"twin_{k}": item[k].clone() for k in ("coord_norm", "coord_valid", "mask_train")}}
-        other, other_pose = self.twins.relabel(obj_id, pose)
-        tg = self.targets.render(other, crop_cam, pose_in_crop(R_crop, other_pose))
-        train = tg.valid if self.cfg.mask_mode == "amodal" else modal
-        return {"twin_part_index": torch.tensor(self._part_index[other], dtype=torch.int64),
-                "twin_coord_norm": torch.from_numpy(tg.coord_norm),
-                "twin_coord_valid": torch.from_numpy(tg.valid.copy()),
-                "twin_mask_train": torch.from_numpy(train.astype(np.float32))}
 
 
 # ---------------------------------------------------------------------- syn:real mixing

@@ -36,10 +36,6 @@ class DataCfg:
     # label a near-symmetric instrument as one of its roll twins (shaft x axis away from the camera): both
     # give the same image, so drawn alike they would give one crop two sets of targets (data.twin_labels)
     canonical_twin: bool = True
-    # near the switch of those labels (shaft axis across the view) nearly the same crops carry either
-    # twin's targets: score each crop against both twins' labels and learn from the better (needs
-    # canonical_twin; the network runs a second time on crops whose twin is another part, the jaws)
-    twin_loss: bool = False
     syn_real_ratio: tuple[int, int] = (1, 1)  # the paper's syn:real 1:1
 
 
@@ -107,8 +103,6 @@ def load_train_config(path: str | Path) -> TrainConfig:
         raise TrainConfigError(f"{p}: data.mask_mode must be 'amodal' or 'modal', got {cfg.data.mask_mode!r}")
     if cfg.optim.schedule not in ("constant", "cosine"):
         raise TrainConfigError(f"{p}: optim.schedule must be 'constant' or 'cosine', got {cfg.optim.schedule!r}")
-    if cfg.data.twin_loss and not cfg.data.canonical_twin:
-        raise TrainConfigError(f"{p}: data.twin_loss needs data.canonical_twin (the twins' labels it scores against)")
     return cfg
 
 

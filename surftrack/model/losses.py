@@ -118,7 +118,7 @@ def pairwise_distances(a: Tensor, b: Tensor) -> Tensor:
 
 # --------------------------------------------------------------------------------------------- InfoNCE
 def info_nce_batched(q: Tensor, k_pos: Tensor, k_neg: Tensor,
-                     neg_log_weight: Tensor | None = None, per_image: bool = False) -> Tensor:
+                     neg_log_weight: Tensor | None = None) -> Tensor:
     """SurfEmb InfoNCE (paper Eq. 3), optionally with log-weighted negatives (Eq. 7), over a batch.
 
     Shapes:
@@ -130,7 +130,7 @@ def info_nce_batched(q: Tensor, k_pos: Tensor, k_neg: Tensor,
                         multiplication of ``exp(l_neg_ij)`` by ``w_ij`` in the softmax denominator.
     Returns:
         scalar: the mean over all B*N queries (all images hold N queries, so this equals the mean of the
-        per-image means); with ``per_image``, the (B,) per-image means.
+        per-image means).
 
     Formula (raw dot products, no normalisation, no temperature)::
 
@@ -161,8 +161,7 @@ def info_nce_batched(q: Tensor, k_pos: Tensor, k_neg: Tensor,
                              f"got {tuple(neg_log_weight.shape)}")
         l_neg = l_neg + neg_log_weight
     logits = torch.cat([l_pos, l_neg], dim=-1)          # (B, N, 1 + M), class 0 = positive
-    per_query = torch.logsumexp(logits, dim=-1) - l_pos.squeeze(-1)  # (B, N)
-    return per_query.mean(-1) if per_image else per_query.mean()
+    return (torch.logsumexp(logits, dim=-1) - l_pos.squeeze(-1)).mean()
 
 
 def info_nce(q: Tensor, k_pos: Tensor, k_neg: Tensor, neg_log_weight: Tensor | None = None) -> Tensor:
@@ -244,7 +243,7 @@ def pen_log_weights(c_query: Tensor, c_neg: Tensor, alpha: float, *, check: bool
 
 
 def pen_nce(q: Tensor, k_pos: Tensor, k_neg: Tensor, c_query: Tensor, c_neg: Tensor, alpha: float,
-            *, check: bool = True, floor: float = 0.0, per_image: bool = False) -> Tensor:
+            *, check: bool = True, floor: float = 0.0) -> Tensor:
     """Penalised InfoNCE ``L_penNCE(alpha)`` (paper Eq. 7), batched.
 
     Shapes: ``q``, ``k_pos`` (B, N, E); ``k_neg`` (B, M, E); ``c_query`` (B, N, 3) normalised coordinates
@@ -255,7 +254,6 @@ def pen_nce(q: Tensor, k_pos: Tensor, k_neg: Tensor, c_query: Tensor, c_neg: Ten
 
     = ``info_nce_batched(q, k_pos, k_neg, pen_log_weights(c_query, c_neg, alpha))``; ``alpha = 0`` is
     exactly :func:`info_nce_batched` (no weights are added at all). ``floor``: see :func:`pen_log_weights`.
-    ``per_image``: the (B,) per-image means instead.
     """
     alpha = _check_alpha(alpha, floor)
     _check_ndim("c_query", c_query, 3, "(B, N, 3)")
@@ -269,7 +267,7 @@ def pen_nce(q: Tensor, k_pos: Tensor, k_neg: Tensor, c_query: Tensor, c_neg: Ten
         raise ValueError(f"c_neg must have shape (B, M, 3) = ({k_neg.shape[0]}, {k_neg.shape[1]}, 3) "
                          f"matching k_neg {tuple(k_neg.shape)}, got {tuple(c_neg.shape)}")
     log_w = None if alpha == 0.0 else pen_log_weights(c_query, c_neg, alpha, check=check, floor=floor).to(q.dtype)
-    return info_nce_batched(q, k_pos, k_neg, log_w, per_image=per_image)
+    return info_nce_batched(q, k_pos, k_neg, log_w)
 
 
 # ------------------------------------------------------------------------------------------ consistency

@@ -18,7 +18,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from surftrack.geometry import rotation_angle_deg
 from surftrack.model import losses
@@ -53,26 +52,17 @@ def _dist(device: str | None) -> tuple[int, int, torch.device]:
 
 class LossForward(torch.nn.Module):
     """Everything a training step asks of the model in one ``forward``: mask logits and queries of the
-    crops, and keys of 3D points (``pts[r]`` on the surface of part ``part[r]``). DDP all-reduces the
+    crops, and keys of 3D points (``pts[b]`` on the surface of part ``part[b]``). DDP all-reduces the
     gradients of the parameters a forward used, so the SIREN fields must be called inside it too; the
-    decoders and fields of parts absent from a batch are unused (``find_unused_parameters``).
-
-    Rows are labellings of crops: row ``r`` reads crop ``src[r]`` of ``img`` as part ``part[r]`` (default
-    ``src``: row r is crop r). The network runs once per distinct (crop, part)."""
+    decoders and fields of parts absent from a batch are unused (``find_unused_parameters``)."""
 
     def __init__(self, model: SurfSurg6D, amp: bool = False):
         super().__init__()
         self.model, self.amp = model, amp
 
-    def forward(self, img: torch.Tensor, part: torch.Tensor, pts: torch.Tensor, src: torch.Tensor | None = None):
+    def forward(self, img: torch.Tensor, part: torch.Tensor, pts: torch.Tensor):
         with torch.autocast(img.device.type, enabled=self.amp):
-            if src is None:
-                mask_logit, query = self.model(img, part)
-            else:
-                n = len(self.model.parts)
-                pairs, row_pair = torch.unique(src * n + part, return_inverse=True)
-                mask_logit, query = self.model(img[pairs // n], pairs % n)
-                mask_logit, query = mask_logit[row_pair], query[row_pair]
+            mask_logit, query = self.model(img, part)
         keys = torch.empty((*pts.shape[:2], query.shape[1]), device=pts.device)
         for p in torch.unique(part).tolist():
             sel = (part == p).nonzero(as_tuple=True)[0]
@@ -100,78 +90,36 @@ class Trainer:
         self.forward = LossForward(model, self.amp)
 
     def losses(self, batch: dict, gen: torch.Generator | None = None, module: torch.nn.Module | None = None) -> dict:
-        """Loss components for a batch (see :func:`surftrack.model.losses.surfsurg6d_loss`).
-
-        A batch with the other roll twin's labels (``twin_part_index`` >= 0, :class:`~surftrack.data.CropDataset`'s
-        ``twin_targets``) scores those crops against both twins' labels and keeps, per crop, the smaller of
-        its mask + penNCE losses (the consistency term does not depend on the image); ``twin_chosen`` is the
-        share of crops whose twin's labels were the smaller."""
+        """Loss components for a batch (see :func:`surftrack.model.losses.surfsurg6d_loss`)."""
         cfg = self.cfg.loss
-        dev = self.device
-        img = batch["image"].to(dev, non_blocking=True)
-        if dev.type == "cuda":
+        img = batch["image"].to(self.device, non_blocking=True)
+        if self.device.type == "cuda":
             img = img.contiguous(memory_format=torch.channels_last)
+        part = batch["part_index"].to(self.device)
+        mask_t = batch["mask_train"].to(self.device)
+        valid = batch["coord_valid"].to(self.device) & (mask_t > 0.5)
+        coord = batch["coord_norm"].to(self.device)
         B = img.shape[0]
-        part = batch["part_index"].to(dev)
-        mask_t = batch["mask_train"].to(dev)
-        valid = batch["coord_valid"].to(dev) & (mask_t > 0.5)
-        coord = batch["coord_norm"].to(dev)
-        twin = batch["twin_part_index"].to(dev) if "twin_part_index" in batch else None
-        alt = (twin >= 0).nonzero(as_tuple=True)[0] if twin is not None else None
-        src = None
-        if alt is not None and len(alt):  # rows B.. are the other twin's labels of crops `alt`
-            t_mask = batch["twin_mask_train"].to(dev)[alt]
-            part = torch.cat([part, twin[alt]])
-            mask_t = torch.cat([mask_t, t_mask])
-            valid = torch.cat([valid, batch["twin_coord_valid"].to(dev)[alt] & (t_mask > 0.5)])
-            coord = torch.cat([coord, batch["twin_coord_norm"].to(dev)[alt]])
-            src = torch.cat([torch.arange(B, device=dev), alt])
-        R = part.shape[0]
-        # Queries: n_pos pixels per row from the training mask (with replacement when it is small).
-        w = valid.view(R, -1).float()
+        # Queries: n_pos pixels per crop from the training mask (with replacement when it is small).
+        w = valid.view(B, -1).float()
         empty = w.sum(1) == 0  # e.g. an occluder over all of a thin part's visible pixels (modal masks)
-        w[empty] = 1.0  # keeps multinomial defined; these rows' queries are left out of the NCE below
-        idx = torch.multinomial(w, cfg.n_pos, replacement=True, generator=gen)        # (R, N)
-        c_q = coord.view(R, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
-        neg_idx = torch.randint(0, self.bank.shape[1], (R, cfg.n_neg), device=dev, generator=gen)
-        c_neg = self.bank[part[:, None], neg_idx]                                       # (R, M, 3)
-        noise = torch.randn((R, cfg.n_pos + cfg.n_neg, 3), device=dev, generator=gen) * cfg.key_noise
+        w[empty] = 1.0  # keeps multinomial defined; these crops' queries are left out of the NCE below
+        idx = torch.multinomial(w, cfg.n_pos, replacement=True, generator=gen)        # (B, N)
+        c_q = coord.view(B, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
+        neg_idx = torch.randint(0, self.bank.shape[1], (B, cfg.n_neg), device=self.device, generator=gen)
+        c_neg = self.bank[part[:, None], neg_idx]                                       # (B, M, 3)
+        noise = torch.randn((B, cfg.n_pos + cfg.n_neg, 3), device=self.device, generator=gen) * cfg.key_noise
         pts = torch.cat([c_q, c_neg], dim=1) + noise
-        forward = module if module is not None else self.forward
-        mask_logit, query, keys = forward(img, part, pts) if src is None else forward(img, part, pts, src)
+        mask_logit, query, keys = (module if module is not None else self.forward)(img, part, pts)
         q = query.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, query.shape[1]))
         k_pos, k_neg = keys[:, : cfg.n_pos], keys[:, cfg.n_pos:]
-        if src is not None:
-            out = self._twin_min(mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, empty, alt, B)
-        else:
-            keep = ~empty if bool((~empty).any()) else torch.ones_like(empty)  # all empty: keep the batch defined
-            q, k_pos, k_neg, c_q, c_neg = (x[keep] for x in (q, k_pos, k_neg, c_q, c_neg))
-            out = losses.surfsurg6d_loss(
-                mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, key_coords=c_neg, key_emb=k_neg,
-                alpha=cfg.alpha, beta=cfg.beta, lam=cfg.lam, m=cfg.m, pen_floor=cfg.pen_floor)
-        out["empty_masks"] = empty[:B].sum().float()
+        keep = ~empty if bool((~empty).any()) else torch.ones_like(empty)  # all empty: keep the batch defined
+        q, k_pos, k_neg, c_q, c_neg = (x[keep] for x in (q, k_pos, k_neg, c_q, c_neg))
+        out = losses.surfsurg6d_loss(
+            mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, key_coords=c_neg, key_emb=k_neg,
+            alpha=cfg.alpha, beta=cfg.beta, lam=cfg.lam, m=cfg.m, pen_floor=cfg.pen_floor)
+        out["empty_masks"] = empty.sum().float()
         return out
-
-    def _twin_min(self, mask_logit, mask_t, q, k_pos, k_neg, c_q, c_neg, empty, alt, B: int) -> dict:
-        """Per crop the smaller of its own labels' and its twin's (rows ``B + j`` label crop ``alt[j]``)
-        mask + penNCE loss, averaged over the crops; the consistency term over the crops' own rows."""
-        cfg = self.cfg.loss
-        l_mask = F.binary_cross_entropy_with_logits(mask_logit, mask_t, reduction="none").flatten(1).mean(1)
-        l_nce = losses.pen_nce(q, k_pos, k_neg, c_q, c_neg, cfg.alpha, floor=cfg.pen_floor, per_image=True)
-        l_nce = torch.where(empty, torch.zeros_like(l_nce), l_nce)
-        per_row = l_mask + l_nce
-        own, other = per_row[:B], torch.full((B,), float("inf"), device=l_nce.device)
-        other[alt] = per_row[B:]
-        chosen = other < own
-        row = torch.arange(B, device=own.device)
-        twin_row = row.clone()
-        twin_row[alt] = torch.arange(B, B + len(alt), device=own.device)
-        row = torch.where(chosen, twin_row, row)  # the rows whose labels count
-        l_con = losses.consistency_loss(c_neg[:B], k_neg[:B], lam=cfg.lam, m=cfg.m) if cfg.beta else l_nce.new_zeros(())
-        total = torch.minimum(own, other).mean() + cfg.beta * l_con
-        counted = ~empty[row]
-        return {"mask": l_mask[row].mean(), "nce": l_nce[row][counted].mean() if counted.any() else l_nce.new_zeros(()),
-                "con": l_con, "total": total, "twin_chosen": chosen.float().mean()}
 
     def set_lr(self, factor: float) -> None:
         """Scale the configured learning rates (network, fields) by ``factor``."""
@@ -310,8 +258,7 @@ def training_crops(cfg: TrainConfig, bop, obj_ids: list[int], seed: int, validat
     """The :class:`~surftrack.data.CropDataset` of ``bop`` (a BopDataset) that :func:`train` feeds the
     network: crops of ``cfg.data``, jittered, rotated and augmented; with ``validation``, centred and plain.
     With ``cfg.data.canonical_twin``, near-symmetric instruments are labelled as one of their roll twins
-    (:mod:`surftrack.data.twin_labels`; the objects' instruments and parts from ``dataset_card.json``); with
-    ``cfg.data.twin_loss`` as well, the crops carry both twins' labels."""
+    (:mod:`surftrack.data.twin_labels`; the objects' instruments and parts from ``dataset_card.json``)."""
     from surftrack.data import CropDataset
     from surftrack.data.twin_labels import twin_labels
 
@@ -321,7 +268,7 @@ def training_crops(cfg: TrainConfig, bop, obj_ids: list[int], seed: int, validat
         objects = json.loads(card.read_text()).get("objects", {}) if card.is_file() else {}
         twins = twin_labels({o: (objects.get(str(o), {}).get("instrument", ""), bop.models[o].name) for o in obj_ids})
     common = dict(obj_ids=obj_ids, crop_size=cfg.data.crop, scale=cfg.data.scale, mask_mode=cfg.data.mask_mode,
-                  seed=seed, twins=twins, twin_targets=cfg.data.twin_loss and twins is not None)
+                  seed=seed, twins=twins)
     if validation:
         return CropDataset(bop, jitter=0.0, augment=None, **common)
     return CropDataset(bop, jitter=cfg.data.jitter, max_rotation_deg=cfg.data.max_rotation_deg,
