@@ -967,3 +967,90 @@ def test_the_solver_seed_reaches_the_keyframes_estimator():
     assert TrackConfig(solver_seed=3, views=5).estimator_preset().views == 5
     with pytest.raises(ValueError, match="solver_seed"):
         TrackConfig(solver_seed=-1)
+
+
+@pytest.mark.parametrize("twin_match", [True, False])
+def test_the_jaws_keyframes_read_the_boxes_of_the_tracked_twins_jaws(clip, lnd_parts, tiny_ckpt, twin_match):
+    """The state holds the LND's roll twin (its jaw_left where the image shows jaw_right, as the model
+    answers beyond a quarter turn of roll) while the detections name the jaws as drawn: with
+    ``twin_match`` each jaw's keyframe reads the box of the jaw the state puts there; without it, the other
+    jaw's box."""
+    from surftrack.instruments import BUILTIN
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    verts = {p.name: p.vertices for p in model.parts}
+    twin = BUILTIN.load("large_needle_driver").roll_twin
+    jl, jr = lnd_parts["jaw_left"], lnd_parts["jaw_right"]
+    box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
+    seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
+    i = min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
+    assert box_iou(box(i, "jaw_left"), box(i, "jaw_right")) < 0.5  # boxes the test tells apart
+    turned = twin.poses({name: gt.pose(i, tid)[:2] for name, tid in lnd_parts.items()})
+    asked: dict[str, tuple] = {}
+
+    class Recording(_GroundTruthEstimator):
+        def estimate(self, image, boxes, K, priors=None, groups=None):
+            out = super().estimate(image, boxes, K, priors, groups)
+            names = {p.obj_id: p.name for p in self.model.parts}
+            asked.update({names[o]: b for o, b in boxes})
+            return [dataclasses.replace(r, R=turned[r.part][0], t=turned[r.part][1]) for r in out]
+
+    est = Recording(model, gt, lnd_parts, 0.0)
+    est.frame = i
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, region=False, twin_match=twin_match,
+                                                             twin_align=False))
+    for name, tid in lnd_parts.items():
+        tracker.set_pose(tid, *turned[name], i / 10.0)
+    dets = {tid: [(box(i, name), 1.0)] for name, tid in lnd_parts.items()}
+    tracker.step(frames[i], i / 10.0, dets)
+    tracker.step(frames[i], i / 10.0 + 0.1, dets)  # every part's keyframe is due (keyframe_every 1)
+    want = {"jaw_left": "jaw_right", "jaw_right": "jaw_left"} if twin_match else {"jaw_left": "jaw_left",
+                                                                                   "jaw_right": "jaw_right"}
+    for jaw, drawn in want.items():
+        assert np.allclose(asked[jaw], box(i, drawn))
+    assert np.allclose(asked["shaft"], box(i, "shaft")) and np.allclose(asked["wrist"], box(i, "wrist"))
+
+
+def test_a_keyframe_keeps_the_tracked_twin(clip, lnd_parts, tiny_ckpt):
+    """The state holds the LND's roll twin (shaft x axis towards the camera), the model answers in its own
+    labels (the drawn poses: x axis away): with ``twin_align`` the estimator is asked each jaw on the box
+    of the jaw its labels put there, and the keyframe's poses are turned back to the tracked twin, so the
+    tracks neither jump half a turn nor restart."""
+    from surftrack.instruments import BUILTIN
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    verts = {p.name: p.vertices for p in model.parts}
+    twin = BUILTIN.load("large_needle_driver").roll_twin
+    box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
+    seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
+    i = min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
+    R, t = gt.pose(i, lnd_parts["shaft"])[:2]
+    assert R[:, 0] @ t > 0  # the drawn pose is the model's label
+    turned = twin.poses({name: gt.pose(i, tid)[:2] for name, tid in lnd_parts.items()})
+    asked: dict[str, tuple] = {}
+
+    class Recording(_GroundTruthEstimator):
+        def estimate(self, image, boxes, K, priors=None, groups=None):
+            names = {p.obj_id: p.name for p in self.model.parts}
+            asked.update({names[o]: b for o, b in boxes})
+            return super().estimate(image, boxes, K, priors, groups)
+
+    est = Recording(model, gt, lnd_parts, 0.0)
+    est.frame = i
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(keyframe_every=1, region=False))
+    for name, tid in lnd_parts.items():
+        tracker.set_pose(tid, *turned[name], i / 10.0)
+    dets = {tid: [(box(i, name), 1.0)] for name, tid in lnd_parts.items()}
+    tracker.step(frames[i], i / 10.0, dets)
+    states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0 + 0.1, dets)}
+    for name in lnd_parts:
+        assert np.allclose(asked[name], box(i, name))  # the twin's jaw_left box is the drawn jaw_left's
+        assert states[name].status == "keyframe" and states[name].info.estimator == "cadence"
+        dr, dt = pose_distance(states[name].R, states[name].t, *turned[name])
+        assert dr < 1.0 and dt < 0.5, (name, dr, dt)

@@ -105,6 +105,16 @@ class TrackConfig:
     per such keyframe made tracking 20 % slower on clips in the view's roll range, where it changed
     nothing beyond the runs' spread; on tools rolled away the jaws gain (docs/results/2026-12-05-stage7.md).
 
+    ``twin_match``: the detections of a twin grasper's tracked jaws are exchanged when each fits the other
+    jaw's tracked projection better by ``twin_match_margin`` (summed IoU), so that the jaws' keyframes read
+    the boxes of the jaws the state holds (no extra crops; :meth:`~surftrack.track.tracker.Tracker._match_twin_boxes`).
+
+    ``twin_align``: a keyframe's estimates of a twin grasper's tracked parts are turned to the roll twin
+    where that lies nearer the tracks (:meth:`~surftrack.track.tracker.Tracker._nearer_twins`): both give
+    the same image, and the track's motion, not the model's side of a quarter turn, decides which; only
+    where the twin lies within ``twin_align_max_deg`` of the root part's track (turning a track already
+    ~90 deg off made it worse: docs/decisions.md, "Keeping the roll twin that continues the track").
+
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
@@ -119,6 +129,10 @@ class TrackConfig:
     flow: bool = False
     region: bool = True
     twin_boxes: bool = False
+    twin_match: bool = True
+    twin_align: bool = True
+    twin_align_max_deg: float = 45.0
+    twin_match_margin: float = 0.2
     region_points: int = 100
     region_min_agreement: float = 0.7
     region_learn_rate: float = 0.2
@@ -205,7 +219,8 @@ class TrackConfig:
                      "region_max_std_deg", "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm"):
+        for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm",
+                     "twin_match_margin", "twin_align_max_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.keyframe_max_s) and self.keyframe_max_s >= 0):

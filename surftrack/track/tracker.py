@@ -31,7 +31,7 @@ import trimesh
 
 from surftrack.eval import diameter_bbox_diagonal
 from surftrack.geometry import Box, project_points, se3, transform_points
-from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, JointState, joints_from_poses
+from surftrack.instruments import BUILTIN, HALF_TURN, Instrument, InstrumentRegistry, JointState, joints_from_poses
 from surftrack.pose import PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_instrument, instrument_parts
 from surftrack.track.config import TrackConfig, TrackConfigError
@@ -606,11 +606,122 @@ class Tracker:
             return [(model, prior)]
         return [(PoseModel(tr.spec.name, *tr.kf.pose), pose_cov(tr)) for tr in trs]
 
+    def _match_twin_boxes(self, boxes: Mapping[int, Sequence[tuple[Box, float]]]
+                          ) -> Mapping[int, Sequence[tuple[Box, float]]]:
+        """``boxes`` with the detections of a twin grasper's two jaws exchanged where each fits the other
+        jaw's tracked projection better (summed IoU by more than ``twin_match_margin``): detections name
+        the jaws as the image shows them, the state the model gives beyond a quarter turn of roll is the
+        roll twin, whose jaw_left is the other jaw. Without the exchange each jaw's keyframe reads the other
+        jaw's crop and its box disagrees with the track on every frame."""
+        cfg = self.cfg
+        if not cfg.twin_match:
+            return boxes
+        by_key: dict[str, dict[str, _Track]] = {}
+        for tr in self.tracks:
+            by_key.setdefault(f"{tr.spec.instrument}.{tr.spec.instance}", {})[tr.spec.part] = tr
+        out = dict(boxes)
+        for key, parts in by_key.items():
+            inst = self._described.get(key)
+            twin = inst.roll_twin if inst is not None else None
+            if twin is None:
+                continue
+            for p, q in twin.partner.items():
+                if not (p < q and p in parts and q in parts and parts[p].has_pose and parts[q].has_pose):
+                    continue
+                a, b = parts[p], parts[q]
+                pa = projected_box(self.K, *a.kf.pose, a.box_vertices, self.size)[0]
+                pb = projected_box(self.K, *b.kf.pose, b.box_vertices, self.size)[0]
+                own_a, own_b = boxes.get(a.spec.track_id, ()), boxes.get(b.spec.track_id, ())
+                fit = lambda tr, cands, pbox: (box_iou(d, pbox) if (d := self._pick_box(tr, cands, pbox)) is not None
+                                               else 0.0)  # noqa: E731
+                if pa is None or pb is None:
+                    continue
+                if fit(a, own_b, pa) + fit(b, own_a, pb) > fit(a, own_a, pa) + fit(b, own_b, pb) + cfg.twin_match_margin:
+                    out[a.spec.track_id], out[b.spec.track_id] = own_b, own_a
+        return out
+
+    def _by_instrument(self, requests: list[tuple[_Track, Box, tuple | None, str]], keep) -> dict[str, dict[str, int]]:
+        """Request indices per instrument key and part, of the requests ``keep(k)`` accepts."""
+        out: dict[str, dict[str, int]] = {}
+        for k, (tr, _, _, _) in enumerate(requests):
+            if keep(k):
+                out.setdefault(f"{tr.spec.instrument}.{tr.spec.instance}", {})[tr.spec.part] = k
+        return out
+
+    def _model_labels(self, requests: list[tuple[_Track, Box, tuple | None, str]]
+                      ) -> tuple[list[Box], list[tuple | None]]:
+        """The boxes and priors to hand the estimator for ``requests``, in the model's labels
+        (``twin_align``): a model trained on one roll twin's labels (:mod:`surftrack.data.twin_labels`)
+        names a grasper whose shaft x axis points towards the camera as its twin, so for such a tracked
+        instrument each part is asked on its partner's box (the jaws exchange boxes) with its partner's
+        prior turned half a turn; :meth:`_nearer_twins` turns the answers back to the tracks."""
+        boxes, priors = [b for _, b, _, _ in requests], [p for _, _, p, _ in requests]
+        if not self.cfg.twin_align:
+            return boxes, priors
+        for key, parts in self._by_instrument(requests, lambda k: True).items():
+            inst = self._described.get(key)
+            twin = inst.roll_twin if inst is not None else None
+            root = inst.chain.order[0] if inst is not None else None
+            if twin is None or root not in parts or not requests[parts[root]][0].has_pose:
+                continue
+            R, t = requests[parts[root]][0].kf.pose
+            if float(R[:, 0] @ t) >= 0.0:  # the model's own labels
+                continue
+            for p, k in parts.items():
+                q = parts.get(twin.partner.get(p))
+                if q is None:
+                    continue
+                boxes[k] = requests[q][1]
+                prior = requests[q][2]
+                priors[k] = (prior[0] @ HALF_TURN, prior[1]) if prior is not None else None
+        return boxes, priors
+
+    def _nearer_twins(self, requests: list[tuple[_Track, Box, tuple | None, str]], results: list) -> list:
+        """``results`` (:class:`~surftrack.pose.PartPose` per request) with the tracked parts of a grasper
+        with a roll twin turned to that twin where it lies nearer their tracks (``twin_align``). The twins
+        give the same image, so the model answers with one of them, the one its training labels put on
+        that side of a quarter turn of roll; a tool rolled through the switch would jump half a turn, be
+        gated out and restart. The tracks' motion decides instead, for all of the instrument's solved parts
+        whose partners are solved too (the jaws exchange poses; a re-appearing part turned with the rest),
+        where the twin lies within ``twin_align_max_deg`` of the root's track (a track already far off is
+        left to the gate and its restart, not turned further)."""
+        cfg = self.cfg
+        if not cfg.twin_align:
+            return results
+        results = list(results)
+        for key, parts in self._by_instrument(requests, lambda k: results[k].ok).items():
+            inst = self._described.get(key)
+            twin = inst.roll_twin if inst is not None else None
+            if twin is None:
+                continue
+            parts = {p: k for p, k in parts.items() if twin.partner.get(p) in parts}
+            tracked = {p: k for p, k in parts.items() if requests[k][0].has_pose}
+            if not tracked:
+                continue
+            est = {p: (results[k].R, results[k].t) for p, k in parts.items()}
+            turned = twin.poses(est)
+
+            def cost(poses: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> float:
+                return sum(dr / cfg.est_rot_std_deg + dt / cfg.est_pos_std_mm for dr, dt in
+                           (pose_distance(*poses[p], *requests[k][0].kf.pose) for p, k in tracked.items()))
+
+            root = inst.chain.order[0]
+            near = [pose_distance(*turned[p], *requests[k][0].kf.pose)[0] for p, k in tracked.items()
+                    if p == root or root not in tracked]
+            if cost(turned) < cost(est) and float(np.median(near)) <= cfg.twin_align_max_deg:
+                was = list(results)
+                for p, k in parts.items():
+                    src = was[parts[twin.partner[p]]]  # the partner's evidence placed this part's twin pose
+                    results[k] = dataclasses.replace(was[k], R=turned[p][0], t=turned[p][1], score=src.score,
+                                                     n_inliers=src.n_inliers)
+        return results
+
     def _schedule(self, boxes: Mapping[int, Sequence[tuple[Box, float]]]
                   ) -> tuple[list[tuple[_Track, Box, tuple | None, str]], dict[int, Box | None]]:
         """Drop parts that left the image, pick each part's box, and list who needs the estimator and
         why: (track, box, prior pose or None, reason). Also the box reported per track id."""
         cfg, K = self.cfg, self.K
+        boxes = self._match_twin_boxes(boxes)
         requests: list[tuple[_Track, Box, tuple | None, str]] = []
         out_boxes: dict[int, Box | None] = {}
         for tr in self.tracks:
@@ -664,12 +775,13 @@ class Tracker:
         cfg, K = self.cfg, self.K
         t_est = time.perf_counter()
         groups = [tr.spec.instance for tr, _, _, _ in requests]
-        results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for tr, b, _, _ in requests], K,
-                                          priors=[p for _, _, p, _ in requests],
-                                          groups=groups if cfg.twin_boxes else None)
+        boxes, priors = self._model_labels(requests)
+        results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for (tr, _, _, _), b in zip(requests, boxes)],
+                                          K, priors=priors, groups=groups if cfg.twin_boxes else None)
         if self._kinematic is not None:
             results = apply_kinematics(results, groups, self.estimator.model.parts, self._kinematic,
                                        self.instruments)
+        results = self._nearer_twins(requests, results)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
         # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
         # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
