@@ -619,6 +619,11 @@ class Tracker:
         by_key: dict[str, dict[str, _Track]] = {}
         for tr in self.tracks:
             by_key.setdefault(f"{tr.spec.instrument}.{tr.spec.instance}", {})[tr.spec.part] = tr
+
+        def fit(tr: _Track, cands: Sequence[tuple[Box, float]], pbox: Box) -> float:
+            det = self._pick_box(tr, cands, pbox)
+            return box_iou(det, pbox) if det is not None else 0.0
+
         out = dict(boxes)
         for key, parts in by_key.items():
             inst = self._described.get(key)
@@ -631,11 +636,9 @@ class Tracker:
                 a, b = parts[p], parts[q]
                 pa = projected_box(self.K, *a.kf.pose, a.box_vertices, self.size)[0]
                 pb = projected_box(self.K, *b.kf.pose, b.box_vertices, self.size)[0]
-                own_a, own_b = boxes.get(a.spec.track_id, ()), boxes.get(b.spec.track_id, ())
-                fit = lambda tr, cands, pbox: (box_iou(d, pbox) if (d := self._pick_box(tr, cands, pbox)) is not None
-                                               else 0.0)  # noqa: E731
                 if pa is None or pb is None:
                     continue
+                own_a, own_b = boxes.get(a.spec.track_id, ()), boxes.get(b.spec.track_id, ())
                 if fit(a, own_b, pa) + fit(b, own_a, pb) > fit(a, own_a, pa) + fit(b, own_b, pb) + cfg.twin_match_margin:
                     out[a.spec.track_id], out[b.spec.track_id] = own_b, own_a
         return out
