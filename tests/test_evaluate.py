@@ -153,6 +153,22 @@ def test_aggregation_with_injected_poses(tiny):
     assert allv["add10_surgripe"] == 1.0 and allv["add10_bop"] == 0.0
 
 
+def test_each_instance_records_its_signed_depth_error(tiny):
+    """``depth_err_rel``: the estimate's excess along the true line of sight over the true distance
+    (negative: too close); a pose moved sideways has none; a non-finite estimate has None."""
+    from surftrack.pose.evaluate import depth_error_rel
+
+    root, ckpt = tiny
+    bop = BopDataset(root, "train")
+    gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
+    r = evaluate(_Oracle(ckpt, gt, lambda o, name, R, t: (R, t * 0.97)), root, split="train")
+    assert [i["depth_err_rel"] for i in r["instances"]] == pytest.approx([-0.03] * len(bop.instances))
+    t = np.array([3.0, -4.0, 80.0])
+    side = np.cross(t, [0.0, 1.0, 0.0])
+    assert depth_error_rel(t + 2.0 * side / np.linalg.norm(side), t) == pytest.approx(0.0, abs=1e-12)
+    assert depth_error_rel([np.nan, 0.0, 1.0], t) is None
+
+
 def test_the_roll_twin_is_scored_as_a_symmetry(tiny):
     """Estimates that are the LND's roll twin of the truth (half a turn about the shaft, the jaws exchanged:
     the same image) fail ADD-10 as scored and pass it with the twin counted as a symmetry of the
@@ -472,3 +488,4 @@ clips:
         assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "bad.yaml" in err and word in err, err
+

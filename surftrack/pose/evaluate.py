@@ -18,6 +18,8 @@ Definitions (all errors from :mod:`surftrack.eval`, bop_toolkit's definitions):
   the model's axis-aligned bounding box, :func:`surftrack.eval.diameter_bbox_diagonal`; >= the BOP one).
 * Avg ACC 0-5 mm: area under the accuracy-vs-threshold curve of ADD on [0, 5] mm (VOCap,
   :func:`surftrack.eval.auc`), also for ADD-S.
+* ``depth_err_rel`` (per instance): the signed depth error relative to the true distance
+  (:func:`depth_error_rel`): a network's depth bias shows in its median over the right poses.
 * Occlusion: SurgRIPE splits its scenes into occlusion / non-occlusion sequences; a BOP split has no such
   label, so an instance counts as OCCLUDED when its visible fraction (BOP ``visib_fract``, visible pixels /
   pixels of the unoccluded silhouette) is below ``occlusion_threshold`` (default 0.9), else NON-OCCLUDED.
@@ -74,6 +76,17 @@ def pose_errors(R_e, t_e, R_g, t_g, pts: np.ndarray) -> dict[str, float]:
         return {"re": math.inf, "te": math.inf, "add": math.inf, "adds": math.inf}
     return {"re": re(R_e, R_g), "te": te(t_e, t_g), "add": add(R_e, t_e, R_g, t_g, pts),
             "adds": adds(R_e, t_e, R_g, t_g, pts)}
+
+
+def depth_error_rel(t_e, t_g) -> float | None:
+    """Signed depth error of an estimate relative to the true distance: the estimated translation's
+    excess along the true line of sight, over the true distance (negative: too close to the camera; a
+    factor ``1 / (1 + e)`` on the translation removes it). None for a non-finite estimate."""
+    t_e, t_g = np.asarray(t_e, np.float64).reshape(3), np.asarray(t_g, np.float64).reshape(3)
+    dist = float(np.linalg.norm(t_g))
+    if not (np.all(np.isfinite(t_e)) and dist > 0):
+        return None
+    return float((t_e - t_g) @ t_g / dist ** 2)
 
 
 def _finite(x) -> float | None:
@@ -366,6 +379,7 @@ def _record(inst, p, points: np.ndarray, d: Mapping, per_image: float, occlusion
         "obj_id": inst.obj_id, "part": d["label"], "visib_fract": float(inst.visib_fract),
         "occluded": bool(inst.visib_fract < occlusion_threshold), "ok": bool(p.ok),
         "score": float(p.score), "n_inliers": int(p.n_inliers), **err,
+        "depth_err_rel": depth_error_rel(p.t, inst.t),
         "add10_bop": bool(err["add"] < 0.1 * d["diameter_bop_mm"]),
         "add10_surgripe": bool(err["add"] < 0.1 * d["diameter_surgripe_mm"]),
         "R": np.asarray(p.R, np.float64).reshape(-1).tolist(),
