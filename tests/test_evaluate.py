@@ -489,3 +489,82 @@ clips:
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "bad.yaml" in err and word in err, err
 
+
+class _SeededOracle(_Oracle):
+    """:class:`_Oracle` for :func:`evaluate_seeds`: the same poses for every seed."""
+
+    def estimate_batch_seeds(self, images, boxes_per_image, Ks, seeds, priors=None, groups=None):
+        return [self.estimate_batch(images, boxes_per_image, Ks) for _ in seeds]
+
+
+def test_depth_calibration_measures_each_parts_bias_and_writes_it(tiny, tmp_path):
+    """Estimates placed a known fraction too close or too far per part give that part's factor; a wrong
+    pose (turned 90 deg, 5 % too far) does not count; the written checkpoint keeps its weights, carries
+    the factors and what they were measured on, and the estimator then multiplies by them."""
+    from surftrack.model.checkpoint import load_checkpoint
+    from surftrack.pose.calibrate import format_depth_biases, measure_depth_bias, write_depth_scales
+
+    root, ckpt = tiny
+    bop = BopDataset(root, "train")
+    gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
+    bias = {"shaft": 0.01, "wrist": -0.006, "jaw_left": -0.03, "jaw_right": -0.02}
+    wrong = {id(i) for i in bop.instances if i.im_id == 0}
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+    def perturb(obj_id, name, R, t):
+        inst = next(i for i in bop.instances if i.obj_id == obj_id and np.allclose(i.t, t))
+        if name == "jaw_left" and id(inst) in wrong:
+            return R @ turn, t * 1.05
+        return R, t * (1.0 + bias[name])
+
+    oracle = _SeededOracle(ckpt, gt, perturb)
+    out = measure_depth_bias(oracle, [root], seeds=[0, 1], min_count=1)
+    counts = {p: sum(1 for i in bop.instances if oracle.names[i.obj_id][0] == p) for p in bias}
+    n_wrong = sum(1 for i in bop.instances if id(i) in wrong and oracle.names[i.obj_id][0] == "jaw_left")
+    assert n_wrong > 0 and counts["jaw_left"] > n_wrong  # with the wrong one counted the median would move
+    for b in out:
+        assert b.bias == pytest.approx(bias[b.part], abs=1e-9)
+        assert b.scale == pytest.approx(1.0 / (1.0 + bias[b.part])) and b.scale_before == 1.0
+        assert b.n == 2 * (counts[b.part] - (n_wrong if b.part == "jaw_left" else 0))
+    too_few = measure_depth_bias(oracle, [root], seeds=[0], min_count=10 ** 6)
+    assert all(b.bias is None and b.scale == 1.0 for b in too_few)
+    assert "too few" in format_depth_biases(too_few) and "-3.00" in format_depth_biases(out)
+
+    dst = write_depth_scales(ckpt, tmp_path / "cal.pt", out, {"data": [str(root)]})
+    model, _, blob = load_checkpoint(dst)
+    base, _, _ = load_checkpoint(ckpt)
+    assert {p.name: p.depth_scale for p in model.parts} == pytest.approx({b.part: b.scale for b in out})
+    assert blob["extra"]["depth_calibration"] == {"data": [str(root)]}
+    for (k, a), (_, b) in zip(model.state_dict().items(), base.state_dict().items()):
+        assert torch.equal(a, b), k
+    # calibrating again measures the bias left (none): the factors compose
+    again = measure_depth_bias(_SeededOracle(dst, gt, perturb), [root], seeds=[0], min_count=1)
+    assert {b.part: b.scale_before for b in again} == pytest.approx({b.part: b.scale for b in out})
+
+
+def test_cli_calibrate_bad_inputs_and_run(tiny, tmp_path, capsys):
+    from surftrack.cli import main
+    from surftrack.model.checkpoint import load_checkpoint
+
+    root, ckpt = tiny
+    out = tmp_path / "cal.pt"
+    cases = [
+        (["--model", str(tmp_path / "missing.pt"), "--data", str(root)], "checkpoint not found"),
+        (["--model", str(ckpt), "--data", str(tmp_path / "nodata")], "dataset root is missing"),
+        (["--model", str(ckpt), "--data", str(root), "--seed", "2", "2"], "--seed takes distinct"),
+        (["--model", str(ckpt), "--data", str(root), "--min-count", "0"], "--min-count"),
+    ]
+    for args, msg in cases:
+        assert main(["calibrate", *args, "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("surftrack: error:") and msg in err and err.count("\n") == 1, err
+    assert not out.exists()
+    # an untrained model has no estimate right up to scale: every factor stays 1, the file is written
+    assert main(["calibrate", "--model", str(ckpt), "--data", str(root), "--seed", "0", "--out", str(out),
+                 "--device", "cpu", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| jaw_left |" in printed and "too few" in printed and f"wrote {out}" in printed
+    model, _, blob = load_checkpoint(out)
+    assert {p.depth_scale for p in model.parts} == {1.0}
+    about = blob["extra"]["depth_calibration"]
+    assert about["data"] == [str(root)] and about["seeds"] == [0] and about["preset"] == "fast"
