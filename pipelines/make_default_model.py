@@ -25,11 +25,7 @@ Steps (each resumable: an existing output is reused):
    alone, from another checkpoint (the int8 export of stage 6 when its fp32 weights are gone).
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
    ``models/default.curves.png``.
-4. ``surftrack calibrate`` on 150 fresh images with the paper's config (seed 771) and 150 over the whole
-   reach (seed 772), fast preset, solver seeds 0-2: each part's depth bias (per-part poses right up to
-   scale), removed by its ``depth_scale`` written into ``models/default.pt`` (:mod:`surftrack.pose.calibrate`;
-   these seeds are in no training set and no suite set).
-5. ``surftrack eval --suite`` (the fixed held-out suite of ``configs/eval/suite.yaml``, its image sets and
+4. ``surftrack eval --suite`` (the fixed held-out suite of ``configs/eval/suite.yaml``, its image sets and
    its tracking clips; fast preset, one crop view, with the kinematic fit, solver seeds 0, 1 and 2): the
    tables go to
    ``models/default.eval.suite.md`` and, by hand, into ``models/MODEL_CARD.md``.
@@ -130,18 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     shutil.copy(prev.with_suffix(".curves.png"), models / "default.curves.png")
     print(f"wrote {models / 'default.pt'} ({(models / 'default.pt').stat().st_size / 1e6:.1f} MB)")
 
-    from surftrack.cli import main as surftrack
-
-    # the network's depth bias per part, on images of neither the training nor the suite: stored in the file
-    _synth(work / "calib_paper", 150, 771, "paper", workers=synth_workers)
-    _synth(work / "calib_reach", 150, 772, "default", workers=synth_workers)
-    code = surftrack(["calibrate", "--model", str(models / "default.pt"), "--data", str(work / "calib_paper"),
-                      "--data", str(work / "calib_reach"), "--preset", "fast", "--seed", "0", "1", "2",
-                      "--out", str(models / "default.pt")] + (["--device", args.device] if args.device else []))
-    if code:
-        return code
-
     if not args.skip_eval:
+        from surftrack.cli import main as surftrack
 
         # `surftrack eval --suite` itself: the fixed held-out suite (configs/eval/suite.yaml), its image sets
         # and tracking clips, fast preset with the fit, solver seeds 0-2

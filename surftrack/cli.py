@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import signal
 import sys
@@ -308,35 +307,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _dataset_origin(folder: str) -> dict:
-    """What a dataset's card says it was made from (synthesis seed, images), {} without a card."""
-    try:
-        card = json.loads((Path(folder) / "dataset_card.json").read_text())
-        return {"seed": card.get("seed"), "images": card.get("images")}
-    except (OSError, ValueError):
-        return {}
-
-
-def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from surftrack.pose.calibrate import format_depth_biases, measure_depth_bias, write_depth_scales
-
-    seeds = args.seed or [0, 1, 2]
-    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
-        raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, seeds))}")
-    if args.min_count < 1:
-        raise CLIError(f"--min-count must be >= 1, got {args.min_count}")
-    biases = measure_depth_bias(args.model, args.data, split=args.split, preset=args.preset, seeds=seeds,
-                                min_count=args.min_count, device=args.device, progress=not args.quiet)
-    about = {"data": [str(d) for d in args.data], "datasets": [_dataset_origin(d) for d in args.data],
-             "split": args.split, "preset": args.preset, "seeds": seeds,
-             "parts": {b.part: {"estimates": b.n, "bias": b.bias, "scale": b.scale} for b in biases}}
-    out = write_depth_scales(args.model, args.out, biases, about)
-    print(f"surftrack calibrate: depth bias of {args.model} on {', '.join(map(str, args.data))} ({args.split}, "
-          f"preset {args.preset}, solver seeds {' '.join(map(str, seeds))}; per-part poses right up to scale)\n"
-          + format_depth_biases(biases) + f"wrote {out}")
-    return 0
-
-
 def _eval_suite(args: argparse.Namespace) -> int:
     """``eval --suite``: make the suite's sets and clips where missing, evaluate each, print and write the
     tables (sets, then clips)."""
@@ -603,22 +573,6 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_eval)
-
-    ca = sub.add_parser("calibrate", help="measure a checkpoint's depth bias per part on held-out BOP images "
-                        "and write a copy that removes it")
-    ca.add_argument("--model", required=True, help="checkpoint file (from `surftrack train`)")
-    ca.add_argument("--data", required=True, action="append",
-                    help="BOP dataset folder of images the model was not trained on (repeatable)")
-    ca.add_argument("--out", required=True, help="checkpoint to write (may be --model itself)")
-    ca.add_argument("--split", default="train", help="split folder (default: train, as `surftrack synth` writes)")
-    ca.add_argument("--preset", default="fast", choices=PRESET_NAMES,
-                    help="estimator preset to measure with (default: fast, the tracking default)")
-    ca.add_argument("--seed", type=int, nargs="+", metavar="N", help="pose-solver seeds (default: 0 1 2)")
-    ca.add_argument("--min-count", type=int, default=50,
-                    help="estimates right up to scale a part needs to be calibrated (default: 50)")
-    ca.add_argument("--device", help="cpu or cuda (default: cuda when available)")
-    ca.add_argument("--quiet", action="store_true", help="no progress bar")
-    ca.set_defaults(func=_cmd_calibrate)
 
     tk = sub.add_parser("track", help="track the instrument parts of a video (the main command; "
                                       "`surftrack VIDEO ...` means `surftrack track VIDEO ...`)")

@@ -259,43 +259,6 @@ def test_twin_jaws_trade_boxes_by_score(tiny_model):
         assert np.allclose(got.R, want.R) and np.allclose(got.t, want.t)
 
 
-def test_depth_scale_multiplies_the_solved_translation_and_divides_the_prior(tiny_model):
-    """A part's ``depth_scale`` (its network's measured depth bias) scales every solution's translation;
-    the solver itself works where the network puts the part, so a prior handed in is divided by the
-    factor first: the scaled estimator with prior (R, t) answers what the unscaled one answers with prior
-    (R, t / f), times f."""
-    import copy
-
-    img = np.random.default_rng(4).integers(0, 256, (540, 960, 3), dtype=np.uint8)
-    plain = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64)
-    model = copy.deepcopy(tiny_model)
-    factors = {1: 0.99, 2: 1.0, 3: 1.03}
-    for p in model.parts:
-        p.depth_scale = factors.get(p.obj_id, 1.0)
-    scaled = PoseEstimator(model, "fast", device="cpu", crop_size=64)
-    for a, b in zip(plain.estimate(img, BOXES, K_LND), scaled.estimate(img, BOXES, K_LND)):
-        assert np.allclose(a.R, b.R) and np.allclose(a.t * factors[a.obj_id], b.t) and a.score == b.score
-    priors = {o: (np.eye(3), np.array([2.0, -1.0, 120.0])) for o in BOXES}
-    with_prior = scaled.estimate(img, BOXES, K_LND, priors=priors)
-    divided = plain.estimate(img, BOXES, K_LND, priors={o: (R, t / factors[o]) for o, (R, t) in priors.items()})
-    for a, b in zip(divided, with_prior):
-        assert a.prior_won is not None and a.prior_won == b.prior_won
-        assert np.allclose(a.R, b.R) and np.allclose(a.t * factors[a.obj_id], b.t)
-
-
-def test_part_depth_scale_survives_the_checkpoint():
-    from surftrack.instruments import load_instrument
-
-    lnd = load_instrument("lnd")
-    info = PartInfo.from_part(3, lnd.name, lnd.parts["jaw_left"])
-    assert info.depth_scale == 1.0
-    info.depth_scale = 1.03
-    d = info.to_dict()
-    assert PartInfo.from_dict(d).depth_scale == 1.03
-    del d["depth_scale"]  # a checkpoint written before calibration existed
-    assert PartInfo.from_dict(d).depth_scale == 1.0
-
-
 def test_estimator_from_checkpoint(tiny_model, tmp_path):
     from surftrack.model import save_checkpoint
     from surftrack.model.config import TrainConfig

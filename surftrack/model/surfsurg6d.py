@@ -21,9 +21,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 @dataclass
 class PartInfo:
-    """What a model knows of one part: ids, names, mesh (mm) and its normalisation sphere. ``depth_scale``:
-    the factor the pose estimator multiplies this part's solved translation by, the trained network's own
-    depth bias measured on images it was not trained on (:mod:`surftrack.pose.calibrate`); 1 until then."""
+    """What a model knows of one part: ids, names, mesh (mm) and its normalisation sphere."""
 
     obj_id: int
     instrument: str
@@ -34,7 +32,6 @@ class PartInfo:
     vertices: np.ndarray
     faces: np.ndarray
     keypoints: dict[str, list[float]]
-    depth_scale: float = 1.0
 
     @classmethod
     def from_part(cls, obj_id: int, instrument: str, part: Part) -> PartInfo:
@@ -52,13 +49,13 @@ class PartInfo:
                 "mesh_sha256": self.mesh_sha256, "center": self.center.tolist(), "radius": self.radius,
                 "vertices": torch.from_numpy(self.vertices.astype(np.float32)),
                 "faces": torch.from_numpy(self.faces.astype(np.int32)),
-                "keypoints": self.keypoints, "depth_scale": float(self.depth_scale)}
+                "keypoints": self.keypoints}
 
     @classmethod
     def from_dict(cls, d: dict) -> PartInfo:
         return cls(int(d["obj_id"]), d["instrument"], d["name"], d["mesh_sha256"], np.asarray(d["center"]),
                    float(d["radius"]), np.asarray(d["vertices"]).astype(np.float64), np.asarray(d["faces"]).astype(np.int64),
-                   d.get("keypoints", {}), float(d.get("depth_scale", 1.0)))
+                   d.get("keypoints", {}))
 
 
 class SurfSurg6D(nn.Module):

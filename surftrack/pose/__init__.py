@@ -5,8 +5,7 @@
 surface keys), :mod:`.correspondence` (correspondence distributions on the downsampled grid),
 :mod:`.hypotheses`, :mod:`.scoring`, :mod:`.refine`, :mod:`.solver` (the per-crop pipeline),
 :mod:`.preset`, :mod:`.estimator`, :mod:`.kinematic` (instrument-consistent poses from the part estimates),
-:mod:`.evaluate` (evaluation on a BOP split: metrics, tables, BOP CSV), :mod:`.calibrate` (a model's
-depth bias per part, measured on held-out images and stored in the checkpoint)
+:mod:`.evaluate` (evaluation on a BOP split: metrics, tables, BOP CSV)
 and :mod:`.synthetic` (correspondence fields from rendered object coordinates, for tests and benchmarks).
 """
 

@@ -7,8 +7,7 @@ together (in batches of ``max_batch``); the rest runs per crop: correspondence f
 refinement (:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times,
 the crop centre shifted by ``view_shift`` of its side, and the views' poses merged
 (:mod:`surftrack.pose.views`). Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
-keeps the camera frame), t in mm, each part's translation multiplied by its ``PartInfo.depth_scale`` (the
-network's measured depth bias, :mod:`surftrack.pose.calibrate`; 1 for an uncalibrated model).
+keeps the camera frame), t in mm.
 
 Boxes are pixel-EDGE boxes ``(x, y, w, h)`` as in ``det.json`` (:mod:`surftrack.synth.detections`): the
 box covers ``[x, x + w] x [y, y + h]`` with pixel centres at integers. A BOP ``bbox`` (w = xmax - xmin
@@ -397,13 +396,7 @@ class PoseEstimator:
             field_ = build_field(mask, query, bank.keys, P.alpha, P.stride, P.mask_threshold, P.min_active,
                                  P.max_active, 4 * P.n_hypotheses, gen)
         box_side = self.crop_size / self.box_scale / P.stride
-        # the network's depth bias (PartInfo.depth_scale): the solver works where the network puts the part,
-        # so a prior goes in divided by the factor and every solution comes out multiplied by it
-        f = self.model.parts[c.part_index].depth_scale
-        prior = None if c.prior is None else (c.prior[0], np.asarray(c.prior[1], np.float64) / f)
-        sol = solve_field(field_, bank, grid_camera(c.K_crop, P.stride), box_side, P, gen, timer, prior=prior)
-        if f != 1.0:
-            sol = dataclasses.replace(sol, t=np.asarray(sol.t, np.float64) * f)
+        sol = solve_field(field_, bank, grid_camera(c.K_crop, P.stride), box_side, P, gen, timer, prior=c.prior)
         ms = dict(timer.ms, crop=crop_ms, forward=fwd_ms)
         ms = {s: ms.get(s, 0.0) for s in STAGES} | ({"keys": ms["keys"]} if "keys" in ms else {})
         ms["total"] = sum(ms.values())
