@@ -982,7 +982,6 @@ def test_the_jaws_keyframes_read_the_boxes_of_the_tracked_twins_jaws(clip, lnd_p
     gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
     verts = {p.name: p.vertices for p in model.parts}
     twin = BUILTIN.load("large_needle_driver").roll_twin
-    jl, jr = lnd_parts["jaw_left"], lnd_parts["jaw_right"]
     box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
     seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
     i = min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
