@@ -163,6 +163,16 @@ def test_each_instance_records_its_signed_depth_error(tiny):
     gt = {(i.obj_id, box_from_bop(i.bbox_visib)): i for i in bop.instances}
     r = evaluate(_Oracle(ckpt, gt, lambda o, name, R, t: (R, t * 0.97)), root, split="train")
     assert [i["depth_err_rel"] for i in r["instances"]] == pytest.approx([-0.03] * len(bop.instances))
+    for p in r["parts"].values():
+        assert p["all"]["depth_bias"] == pytest.approx(-0.03) and p["all"]["depth_bias_count"] == p["all"]["count"]
+    assert "Depth bias (% of the distance" in markdown_table(r) and "-3.00 (" in markdown_table(r)
+    # a wrong rotation, or a depth 20 % off, says nothing about the bias
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    r = evaluate(_Oracle(ckpt, gt, lambda o, name, R, t: (R @ turn, t * 0.97) if name == "shaft" else (R, t * 0.8)),
+                 root, split="train")
+    assert {p["all"]["depth_bias_count"] for p in r["parts"].values()} == {0}
+    assert all(p["all"]["depth_bias"] is None for p in r["parts"].values())
+    assert "Depth bias" not in markdown_table(r)
     t = np.array([3.0, -4.0, 80.0])
     side = np.cross(t, [0.0, 1.0, 0.0])
     assert depth_error_rel(t + 2.0 * side / np.linalg.norm(side), t) == pytest.approx(0.0, abs=1e-12)

@@ -19,7 +19,9 @@ Definitions (all errors from :mod:`surftrack.eval`, bop_toolkit's definitions):
 * Avg ACC 0-5 mm: area under the accuracy-vs-threshold curve of ADD on [0, 5] mm (VOCap,
   :func:`surftrack.eval.auc`), also for ADD-S.
 * ``depth_err_rel`` (per instance): the signed depth error relative to the true distance
-  (:func:`depth_error_rel`): a network's depth bias shows in its median over the right poses.
+  (:func:`depth_error_rel`); the depth bias: its median over the estimates right up to scale (RE < 20 deg,
+  depth within 10 %). Monocular depth is the pose's least certain direction, and the bundled model's small
+  parts come out 2-3 % too close on still images (docs/decisions.md, "A depth calibration per part").
 * Occlusion: SurgRIPE splits its scenes into occlusion / non-occlusion sequences; a BOP split has no such
   label, so an instance counts as OCCLUDED when its visible fraction (BOP ``visib_fract``, visible pixels /
   pixels of the unoccluded silhouette) is below ``occlusion_threshold`` (default 0.9), else NON-OCCLUDED.
@@ -117,7 +119,18 @@ def group_stats(records: Sequence[Mapping], diameters: Mapping[int, Mapping[str,
     twin = [bool(r["add10_twin_surgripe"]) for r in records if "add10_twin_surgripe" in r]
     out["add10_twin_surgripe"] = float(np.mean(twin)) if twin else None
     out["twin_count"] = len(twin)
-    return {k: out[k] for k in ("count", "failures", *keys, "add10_twin_surgripe", "twin_count")}
+    depth = [float(r["depth_err_rel"]) for r in records if _right_up_to_scale(r)]
+    out["depth_bias"] = float(np.median(depth)) if depth else None
+    out["depth_bias_count"] = len(depth)
+    return {k: out[k] for k in ("count", "failures", *keys, "add10_twin_surgripe", "twin_count", "depth_bias",
+                                "depth_bias_count")}
+
+
+def _right_up_to_scale(record: Mapping) -> bool:
+    """An estimate whose rotation is right (RE < 20 deg) and depth within 10 %: its depth error measures the
+    estimator's depth bias (a wrong pose's says nothing about it)."""
+    e, rot = record.get("depth_err_rel"), record.get("re")
+    return e is not None and rot is not None and abs(float(e)) < 0.1 and float(rot) < 20.0
 
 
 def summarize(records: Sequence[Mapping], parts: Mapping[int, Mapping], occlusion_threshold: float = 0.9) -> dict:
@@ -480,6 +493,12 @@ def markdown_table(result: Mapping, diameter: str = "surgripe", stat: str = "mea
                       "instrument was estimated whole): "
                   + ", ".join(f"{label.strip('*')} {100 * a['add10_twin_surgripe']:.2f} ({a['twin_count']})"
                               for label, a in twins) + "."]
+    depth = [(label, p["all"]) for label, p in rows if p["all"].get("depth_bias_count")]
+    if depth:
+        lines += ["", "Depth bias (% of the distance along the line of sight; negative: too close to the camera), "
+                      "median over the estimates right up to scale (RE < 20 deg, depth within 10 %): "
+                  + ", ".join(f"{label.strip('*')} {100 * a['depth_bias']:+.2f} ({a['depth_bias_count']})"
+                              for label, a in depth) + "."]
     return "\n".join(lines) + "\n"
 
 
