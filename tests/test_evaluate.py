@@ -498,4 +498,3 @@ clips:
         assert main(["eval", "--suite", str(tmp_path / "bad.yaml"), "--model", str(tiny_ckpt)]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "bad.yaml" in err and word in err, err
-

@@ -98,8 +98,10 @@ def _finite(x) -> float | None:
 
 def group_stats(records: Sequence[Mapping], diameters: Mapping[int, Mapping[str, float]]) -> dict:
     """Summary of a group of per-instance records (keys ``obj_id``, ``re``, ``te``, ``add``, ``adds``, and
-    optionally ``ok``); ``diameters[obj_id]`` = {"bop": mm, "surgripe": mm}. ADD-10 compares each instance
-    with 10 % of ITS part's diameter. Every statistic is None for an empty group."""
+    optionally ``ok``, ``add10_twin_surgripe``, ``depth_err_rel``); ``diameters[obj_id]`` = {"bop": mm,
+    "surgripe": mm}. ADD-10 compares each instance with 10 % of ITS part's diameter; ``depth_bias`` is the
+    median ``depth_err_rel`` of the ``depth_bias_count`` estimates right up to scale. Every statistic is None
+    for an empty group."""
     n = len(records)
     keys = ("re_mean", "re_median", "te_mean", "te_median", "add_mean", "add_median", "adds_mean", "adds_median",
             "add10_bop", "add10_surgripe", "adds10_bop", "adds10_surgripe", "auc_add_0_5mm", "auc_adds_0_5mm")
