@@ -969,6 +969,19 @@ def test_the_solver_seed_reaches_the_keyframes_estimator():
         TrackConfig(solver_seed=-1)
 
 
+def _frame_with_jaws_apart(clip, lnd_parts, tiny_ckpt):
+    """(model, ground truth, K, frames, box(frame, part name) -> the part's projected true box, the frame
+    whose jaws' boxes overlap least among those where every part is seen) for the roll-twin tests."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    verts = {p.name: p.vertices for p in model.parts}
+    box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
+    seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
+    return model, gt, K, frames, box, min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
+
+
 @pytest.mark.parametrize("twin_match", [True, False])
 def test_the_jaws_keyframes_read_the_boxes_of_the_tracked_twins_jaws(clip, lnd_parts, tiny_ckpt, twin_match):
     """The state holds the LND's roll twin (its jaw_left where the image shows jaw_right, as the model
@@ -976,15 +989,9 @@ def test_the_jaws_keyframes_read_the_boxes_of_the_tracked_twins_jaws(clip, lnd_p
     ``twin_match`` each jaw's keyframe reads the box of the jaw the state puts there; without it, the other
     jaw's box."""
     from surftrack.instruments import BUILTIN
-    from surftrack.model import load_checkpoint
 
-    model = load_checkpoint(tiny_ckpt)[0]
-    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
-    verts = {p.name: p.vertices for p in model.parts}
+    model, gt, K, frames, box, i = _frame_with_jaws_apart(clip, lnd_parts, tiny_ckpt)
     twin = BUILTIN.load("large_needle_driver").roll_twin
-    box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
-    seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
-    i = min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
     assert box_iou(box(i, "jaw_left"), box(i, "jaw_right")) < 0.5  # boxes the test tells apart
     turned = twin.poses({name: gt.pose(i, tid)[:2] for name, tid in lnd_parts.items()})
     asked: dict[str, tuple] = {}
@@ -1019,15 +1026,9 @@ def test_a_keyframe_keeps_the_tracked_twin(clip, lnd_parts, tiny_ckpt):
     of the jaw its labels put there, and the keyframe's poses are turned back to the tracked twin, so the
     tracks neither jump half a turn nor restart."""
     from surftrack.instruments import BUILTIN
-    from surftrack.model import load_checkpoint
 
-    model = load_checkpoint(tiny_ckpt)[0]
-    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
-    verts = {p.name: p.vertices for p in model.parts}
+    model, gt, K, frames, box, i = _frame_with_jaws_apart(clip, lnd_parts, tiny_ckpt)
     twin = BUILTIN.load("large_needle_driver").roll_twin
-    box = lambda k, name: projected_box(K, *gt.pose(k, lnd_parts[name])[:2], verts[name], (320, 256))[0]  # noqa: E731
-    seen = [k for k in range(len(frames)) if min(gt.pose(k, tid)[2] for tid in lnd_parts.values()) > 50]
-    i = min(seen, key=lambda k: box_iou(box(k, "jaw_left"), box(k, "jaw_right")))
     R, t = gt.pose(i, lnd_parts["shaft"])[:2]
     assert R[:, 0] @ t > 0  # the drawn pose is the model's label
     turned = twin.poses({name: gt.pose(i, tid)[:2] for name, tid in lnd_parts.items()})
