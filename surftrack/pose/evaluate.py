@@ -107,7 +107,8 @@ def group_stats(records: Sequence[Mapping], diameters: Mapping[int, Mapping[str,
             "add10_bop", "add10_surgripe", "adds10_bop", "adds10_surgripe", "auc_add_0_5mm", "auc_adds_0_5mm")
     out: dict = {"count": n, "failures": sum(1 for r in records if not r.get("ok", True))}
     if n == 0:
-        return out | {k: None for k in keys} | {"add10_twin_surgripe": None, "twin_count": 0}
+        return out | {k: None for k in keys} | {"add10_twin_surgripe": None, "twin_count": 0, "depth_bias": None,
+                                                 "depth_bias_count": 0}
     col = {k: np.array([float(r[k]) for r in records]) for k in ("re", "te", "add", "adds")}
     for k, v in col.items():
         out[f"{k}_mean"] = _finite(np.mean(v))
