@@ -473,7 +473,8 @@ def _pooled(summary: Mapping[str, Mapping], parts: Sequence[str], key: str) -> f
 
 def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, Path], seeds: list[int],
                    preset: str = "fast", views: int = 0, kinematic: bool = True, device: str | None = None,
-                   instruments: InstrumentRegistry = BUILTIN, progress: bool = False) -> dict[str, dict]:
+                   instruments: InstrumentRegistry = BUILTIN, progress: bool = False,
+                   anchor_views: int = 0) -> dict[str, dict]:
     """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed:
     name -> {"frames": n, "parts": {part: ADD-10 % mean over seeds}, "per_seed": [ADD-10 % over all
     part-frames, per seed], "per_seed_twin": the same with roll twins counted as a symmetry, or None}, what
@@ -483,7 +484,7 @@ def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, 
 
     model, train_cfg, _ = load_checkpoint(checkpoint, device or "cpu")
     # the estimator's figures: its jaws' box assignment on, as in ``surftrack eval``'s image sets
-    base = TrackConfig(preset=preset, views=views, kinematic=kinematic, twin_boxes=True)
+    base = TrackConfig(preset=preset, views=views, kinematic=kinematic, twin_boxes=True, anchor_views=anchor_views)
     table = {}
     for name in names:
         folder = Path(folders[name])

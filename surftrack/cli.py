@@ -244,16 +244,32 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _checked_views(views: int) -> int:
-    """``--views``, or a CLIError when it is out of range."""
+def _checked_views(views: int, flag: str = "--views") -> int:
+    """``--views`` (or ``flag``), or a CLIError when it is out of range."""
     if not 1 <= views <= 9:
-        raise CLIError(f"--views must be between 1 and 9, got {views}")
+        raise CLIError(f"{flag} must be between 1 and 9, got {views}")
     return views
+
+
+def _eval_preset(args: argparse.Namespace):
+    """``eval``'s estimator preset: --preset with --views and --anchor-views."""
+    from surftrack.pose.kinematic import KinematicConfig
+    from surftrack.pose.preset import get_preset
+
+    preset = get_preset(args.preset)
+    if args.views is not None:
+        preset = preset.replace(views=_checked_views(args.views))
+    if args.anchor_views is not None:
+        if not args.kinematic:
+            raise CLIError("--anchor-views gives the instrument fit's anchor part more crop views: "
+                           "it needs --kinematic")
+        preset = preset.replace(part_views=((KinematicConfig().anchor, _checked_views(args.anchor_views,
+                                                                                      "--anchor-views")),))
+    return preset
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from surftrack.pose.evaluate import evaluate, evaluate_seeds, markdown_table, seed_table, write_eval_outputs
-    from surftrack.pose.preset import get_preset
 
     if args.suite is not None:
         if args.by_cause:
@@ -269,9 +285,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if any(s < 0 for s in args.seed) or len(set(args.seed)) != len(args.seed):
         raise CLIError(f"--seed takes distinct numbers >= 0, got {' '.join(map(str, args.seed))}")
     out = Path(args.out)
-    preset = get_preset(args.preset)
-    if args.views is not None:
-        preset = preset.replace(views=_checked_views(args.views))
+    preset = _eval_preset(args)
     kwargs = dict(split=args.split, max_images=args.max_images, occlusion_threshold=args.occlusion_threshold,
                   device=args.device, progress=not args.quiet, kinematic=args.kinematic,
                   instruments=_registry(args))
@@ -284,7 +298,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         paths = write_eval_outputs(r, one)
         print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} "
               f"({args.split}), preset {r['preset']} (seed {r['seed']}"
-              f"{'' if r['views'] == 1 else ', %d crop views per box' % r['views']})"
+              f"{'' if r['views'] == 1 else ', %d crop views per box' % r['views']}"
+              f"{''.join(f', {n} on {p}' for p, n in r.get('part_views', {}).items())})"
               f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
               f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
         print(markdown_table(r), end="")
@@ -310,7 +325,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _eval_suite(args: argparse.Namespace) -> int:
     """``eval --suite``: make the suite's sets and clips where missing, evaluate each, print and write the
     tables (sets, then clips)."""
-    from surftrack.pose.preset import get_preset
     from surftrack.pose.suite import evaluate_suite, load_suite, load_suite_clips, make_suite, suite_table
 
     seeds = args.seed or [0, 1, 2]
@@ -319,10 +333,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
     sets = load_suite(None if args.suite == "default" else args.suite)
     clips = load_suite_clips(None if args.suite == "default" else args.suite)  # checked before any work
     registry = _registry(args)
+    preset = _eval_preset(args)  # checked before any work
     folders = make_suite(sets, args.suite_dir, workers=2, progress=not args.quiet, instruments=registry)
-    preset = get_preset(args.preset)
-    if args.views is not None:
-        preset = preset.replace(views=_checked_views(args.views))
     table = evaluate_suite(args.model, sets, folders, seeds, preset=preset, device=args.device,
                            kinematic=args.kinematic, instruments=registry, progress=not args.quiet)
     text = suite_table(table, sets)
@@ -330,7 +342,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
         text += "\n" + _suite_clips_table(args, clips, seeds, registry)
     out = Path(args.out).with_suffix(".suite.md")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(f"Model {args.model}, preset {preset.name}{', kinematic fit' if args.kinematic else ''}, "
+    views = "".join(f", {n} crop views on {p}" for p, n in preset.part_views)
+    out.write_text(f"Model {args.model}, preset {preset.name}{views}{', kinematic fit' if args.kinematic else ''}, "
                    f"solver seeds {' '.join(map(str, seeds))}.\n\n{text}")
     print(text, end="")
     print(f"wrote {out}")
@@ -347,7 +360,7 @@ def _suite_clips_table(args: argparse.Namespace, clips, seeds: list[int], regist
     views = _checked_views(args.views) if args.views is not None else 0
     table = evaluate_clips(args.model, [c.name for c in clips], folders, seeds, preset=args.preset, views=views,
                            kinematic=bool(args.kinematic), device=args.device, instruments=registry,
-                           progress=not args.quiet)
+                           progress=not args.quiet, anchor_views=args.anchor_views or 0)
     return clip_table(table, clips)
 
 
@@ -366,6 +379,8 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
         cfg = cfg.replace(smooth_lag_s=0.0)
     if args.views is not None:
         cfg = cfg.replace(views=_checked_views(args.views))
+    if args.anchor_views is not None:
+        cfg = cfg.replace(anchor_views=_checked_views(args.anchor_views, "--anchor-views"))
     if args.device == "cuda":
         import torch
 
@@ -557,6 +572,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--preset", default="accurate", choices=PRESET_NAMES, help="estimator preset (default: "
                     "accurate; thorough: accurate on five crop views per box, about 4x its time)")
     ev.add_argument("--views", type=int, metavar="N", help="crop views per box, 1-9 (default: the preset's)")
+    ev.add_argument("--anchor-views", type=int, metavar="N", help="with --kinematic: crop views per box of the "
+                    "instrument fit's anchor part (the wrist), 1-9; its depth places the whole instrument "
+                    "(default: as --views)")
     ev.add_argument("--max-images", type=int, help="evaluate only the first N images")
     ev.add_argument("--seed", type=int, nargs="+", metavar="N",
                     help="random seed(s) of the pose solver (surface samples, hypotheses; default 0). On ~100 "
@@ -589,6 +607,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     tk.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9 (default: the "
                     "preset's; 5: about 4x the keyframe time, better poses)")
+    tk.add_argument("--anchor-views", type=int, metavar="N", help="crop views per box of the instrument fit's "
+                    "anchor part (the wrist) on keyframes, 1-9 (default from the config)")
     tk.add_argument("--config", help="tracking YAML or a name in configs/track: default (outlines between keyframes), "
                                      "every_frame (the estimator on every frame), articulated (one state per "
                                      "instrument, its parts views of it)")
@@ -633,6 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--causal", action="store_true", help="no smoothing with later frames (see track --causal)")
     ba.add_argument("--preset", choices=PRESET_NAMES, help="estimator preset (default from the config)")
     ba.add_argument("--views", type=int, metavar="N", help="crop views per box on keyframes, 1-9")
+    ba.add_argument("--anchor-views", type=int, metavar="N", help="crop views of the fit's anchor part, 1-9")
     ba.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda on workers that have a GPU")
     ba.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
                     help="your instrument's description, for joint angles and the fit; repeatable")

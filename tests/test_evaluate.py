@@ -281,6 +281,9 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
         (["--model", str(ckpt), "--data", str(root), "--seed", "-1"], "--seed"),
         (["--model", str(ckpt), "--data", str(root), "--seed", "1", "1"], "--seed takes distinct"),
         (["--model", str(ckpt), "--data", str(root), "--views", "10"], "--views must be between 1 and 9"),
+        (["--model", str(ckpt), "--data", str(root), "--anchor-views", "3"], "it needs --kinematic"),
+        (["--model", str(ckpt), "--data", str(root), "--kinematic", "--anchor-views", "0"],
+         "--anchor-views must be between 1 and 9"),
     ]
     for args, msg in cases:
         assert main(["eval", *args, "--out", str(tmp_path / "e.json"), "--quiet"]) == 2
@@ -309,6 +312,13 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
     assert "2 crop views per box" in capsys.readouterr().out
     assert json.loads(views.read_text())["views"] == 2
     assert {i["timings_ms"]["total"] > 0 for i in json.loads(views.read_text())["instances"]} == {True}
+    # more crop views for the instrument fit's anchor only
+    anchor = tmp_path / "anchor" / "e.json"
+    assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
+                 "--max-images", "1", "--kinematic", "--anchor-views", "3", "--out", str(anchor), "--device", "cpu",
+                 "--quiet"]) == 0
+    assert ", 3 on wrist)" in capsys.readouterr().out
+    assert json.loads(anchor.read_text())["views"] == 1 and json.loads(anchor.read_text())["part_views"] == {"wrist": 3}
 
 
 def test_cli_preset_names_are_the_presets():

@@ -224,12 +224,33 @@ def test_estimator_merges_crop_views(tiny_model):
         assert p.counts["views"] == 3 and 1 <= p.counts["views_merged"] <= 3
         assert np.allclose(p.R @ p.R.T, np.eye(3), atol=1e-6) and np.all(np.isfinite(p.t)) and p.ok
         assert p.crop_box == a.crop_box  # the unshifted view's crop
-        assert p.timings["forward"] >= a.timings["forward"] and p.timings["total"] > a.timings["total"]
+        # each view's stage times are summed into the box's (not compared: wall times vary with load)
+        assert p.timings["forward"] > 0.0 and p.timings["total"] > 0.0
     # the same poses whatever else is in the batch
     later = est.estimate_batch([img[::-1].copy(), img], [[(2, (10.0, 10.0, 50.0, 40.0))], BOXES], [K_LND, K_LND])
     assert [len(f) for f in later] == [1, 3]
     for a, b in zip(out, later[1]):
         assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t) and a.counts == b.counts
+
+
+def test_named_parts_get_their_own_crop_views(tiny_model):
+    """``part_views`` gives the named part (the instrument fit's anchor, obj 2 the wrist) its own number of
+    crop views; the other parts keep the preset's, and each part's pose is what an estimator with that
+    number of views for every part gives it."""
+    img = np.random.default_rng(3).integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    assert tiny_model.parts[1].name == "wrist"
+    preset = PRESETS["fast"].replace(part_views=(("wrist", 3),))
+    assert preset.views_of("wrist") == 3 and preset.views_of("shaft") == 1
+    out = PoseEstimator(tiny_model, preset, device="cpu", crop_size=64).estimate(img, BOXES, K_LND)
+    one = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64).estimate(img, BOXES, K_LND)
+    three = PoseEstimator(tiny_model, PRESETS["fast"].replace(views=3), device="cpu", crop_size=64).estimate(
+        img, BOXES, K_LND)
+    assert [p.obj_id for p in out] == [1, 2, 3]
+    assert out[1].counts["views"] == 3 and "views" not in out[0].counts and "views" not in out[2].counts
+    for got, want in zip(out, (one[0], three[1], one[2])):
+        assert np.allclose(got.R, want.R) and np.allclose(got.t, want.t) and got.score == pytest.approx(want.score)
+    with pytest.raises(ValueError, match="part_views"):
+        PRESETS["fast"].replace(part_views=(("wrist", 10),))
 
 
 def test_twin_jaws_trade_boxes_by_score(tiny_model):

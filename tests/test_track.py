@@ -567,6 +567,12 @@ def test_keyframe_preset_and_views():
     assert cfg.replace(preset="thorough").estimator_preset().views == 5
     with pytest.raises(ValueError, match="views must be 0"):
         TrackConfig(views=10)
+    # the instrument fit's anchor gets its own crop views, only where the fit runs
+    assert cfg.replace(anchor_views=3).estimator_preset().part_views == ((cfg.kinematic_anchor, 3),)
+    assert cfg.replace(anchor_views=3, kinematic_anchor="shaft").estimator_preset().views_of("shaft") == 3
+    assert cfg.replace(anchor_views=3, kinematic=False).estimator_preset().part_views == ()
+    with pytest.raises(ValueError, match="anchor_views must be 0"):
+        TrackConfig(anchor_views=10)
     with pytest.raises(ValueError, match="preset must be one of accurate, fast, thorough"):
         TrackConfig(preset="slow")
 

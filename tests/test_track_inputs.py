@@ -165,6 +165,7 @@ def test_outputs_never_overwrite_inputs_or_the_last_run(clip, tiny_ckpt, tmp_pat
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--overlay", str(tmp_path / "o.avi")], "o.avi", ".mp4")
     assert last.read_bytes() == b"the last run"
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--views", "12"], "--views must be between 1 and 9")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--anchor-views", "0"], "--anchor-views must be between 1 and 9")
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("preset: [fast\nkeyframe_every: 2\n")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", str(cfg)], "bad.yaml", "line 2, column 15")

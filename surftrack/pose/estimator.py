@@ -4,10 +4,10 @@ Crops are made as in training (:mod:`surftrack.data.dataset`): a square box arou
 side = the model's ``data.scale`` x the box's longer side (:func:`surftrack.geometry.square_crop_box`), no
 rotation, warped bilinearly to the model's crop size. All crops of all frames go through the network
 together (in batches of ``max_batch``); the rest runs per crop: correspondence field, hypotheses, scoring,
-refinement (:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times,
-the crop centre shifted by ``view_shift`` of its side, and the views' poses merged
-(:mod:`surftrack.pose.views`). Poses are model-to-camera of the ORIGINAL camera (a crop without rotation
-keeps the camera frame), t in mm.
+refinement (:mod:`surftrack.pose.solver`). With ``preset.views`` > 1 every box is cropped that many times
+(``preset.part_views``: another count for named parts), the crop centre shifted by ``view_shift`` of its
+side, and the views' poses merged (:mod:`surftrack.pose.views`). Poses are model-to-camera of the
+ORIGINAL camera (a crop without rotation keeps the camera frame), t in mm.
 
 Boxes are pixel-EDGE boxes ``(x, y, w, h)`` as in ``det.json`` (:mod:`surftrack.synth.detections`): the
 box covers ``[x, x + w] x [y, y + h]`` with pixel centres at integers. A BOP ``bbox`` (w = xmax - xmin
@@ -89,6 +89,7 @@ class _Crop:
     K_crop: np.ndarray
     pixels: np.ndarray
     prior: tuple[np.ndarray, np.ndarray] | None = None
+    views: int = 1  # crops of this box (consecutive in the crop list, this one among them)
 
 
 def _crop_seed(seed: int, crop: _Crop) -> int:
@@ -313,7 +314,7 @@ class PoseEstimator:
         if priors is not None and len(priors) != len(images):
             raise ValueError(f"need one prior mapping (or None) per image, got {len(priors)} for {len(images)}")
         S = self.crop_size
-        offsets = view_offsets(self.preset.views, self.preset.view_shift)
+        names = {p.obj_id: p.name for p in self.model.parts}
         crops: list[_Crop] = []
         t0 = time.perf_counter()
         for i, (img, bx, K) in enumerate(zip(images, boxes_per_image, Ks)):
@@ -325,11 +326,12 @@ class PoseEstimator:
                 prior = None if pri is None else (pri.get(obj_id) if isinstance(pri, Mapping) else pri[j])
                 x0, y0, x1, y1 = square_crop_box(box, self.box_scale)
                 side = x1 - x0
+                offsets = view_offsets(self.preset.views_of(names[obj_id]), self.preset.view_shift)
                 for dx, dy in offsets:
                     cbox = (x0 + dx * side, y0 + dy * side, x1 + dx * side, y1 + dy * side)
                     M, ccam = crop_affine(cam, cbox, (S, S))
                     crops.append(_Crop(i, obj_id, self.model.part_index(obj_id), box, cbox, ccam.K,
-                                       warp_image(img, M, S), prior))
+                                       warp_image(img, M, S), prior, len(offsets)))
         return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
 
     def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
@@ -341,10 +343,12 @@ class PoseEstimator:
         try:
             if limit:
                 torch.set_num_threads(self.solver_threads)
-            n = self.preset.views  # each box's views are consecutive crops (see _crops)
-            for s in range(0, len(crops), n):
+            s = 0
+            while s < len(crops):  # each box's views are consecutive crops (see _crops)
+                n = crops[s].views
                 views = [self._solve(crops[k], masks[k], queries[k], crop_ms, fwd_ms, seed) for k in range(s, s + n)]
                 results[crops[s].image_index].append(views[0] if n == 1 else self._merge(views))
+                s += n
         finally:
             if limit:
                 torch.set_num_threads(threads)

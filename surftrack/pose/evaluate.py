@@ -202,8 +202,8 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     """Run the estimator (a checkpoint path or a :class:`PoseEstimator`) on the split ``split`` of the BOP
     dataset ``data_dir`` with ground-truth boxes and return the JSON-ready result:
 
-    ``{"checkpoint", "data_dir", "split", "preset", "views", "device", "n_images", "n_instances", "occlusion",
-    "diameters", "parts": {label: {obj_id, instrument, part, diameter_bop_mm, diameter_surgripe_mm,
+    ``{"checkpoint", "data_dir", "split", "preset", "views", "part_views", "device", "n_images", "n_instances",
+    "occlusion", "diameters", "parts": {label: {obj_id, instrument, part, diameter_bop_mm, diameter_surgripe_mm,
     non_occ|occ|all: stats}}, "overall": {non_occ|occ|all: stats}, "timings", "accuracy_curve",
     "instances": [...], "warnings": [...]}`` with stats as :func:`group_stats`.
 
@@ -354,7 +354,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
         warnings.warn(w, stacklevel=3)
     ckpt = str(checkpoint) if not isinstance(checkpoint, PoseEstimator) else None
     common = {"checkpoint": ckpt, "data_dir": str(data_dir), "split": split, "preset": est.preset.name,
-              "views": est.preset.views,
+              "views": est.preset.views, "part_views": dict(est.preset.part_views),
               "kinematic": dataclasses.asdict(kinematic) if kinematic else None, "kinematic_instruments": list(fitted),
               "device": str(est.device), "n_images": len(keys), "skipped_unknown_obj": skipped}
     return [_result(common, sd, records[sd], image_s[sd], load_s, load_s + sum(image_s[sd]) if shared else wall_s,

@@ -55,6 +55,7 @@ class Preset:
     min_inliers: int = 6
     # test-time crop views (:mod:`surftrack.pose.views`)
     views: int = 1                   # crops per box, each solved on its own, their poses merged
+    part_views: tuple[tuple[str, int], ...] = ()  # (part name, views) overriding ``views`` for those parts
     view_shift: float = 0.06         # crop-centre shift of the shifted views, x the crop's side
     view_radius_deg: float = 15.0    # views within this rotation of the modal one are averaged
     # network
@@ -70,11 +71,17 @@ class Preset:
         if not 1 <= self.views <= 9 or not 0 <= self.view_shift <= 0.5 or not self.view_radius_deg > 0:
             raise ValueError(f"preset {self.name}: need 1 <= views <= 9, 0 <= view_shift <= 0.5 and "
                              f"view_radius_deg > 0")
+        if any(not isinstance(n, str) or not 1 <= int(v) <= 9 for n, v in self.part_views):
+            raise ValueError(f"preset {self.name}: part_views must be (part name, 1-9) pairs, got {self.part_views}")
         if not 0 < self.depth_range[0] < self.depth_range[1]:
             raise ValueError(f"preset {self.name}: invalid depth_range {self.depth_range}")
 
     def replace(self, **changes) -> Preset:
         return dataclasses.replace(self, **changes)
+
+    def views_of(self, part: str) -> int:
+        """Crop views per box of the part named ``part``."""
+        return int(dict(self.part_views).get(part, self.views))
 
 
 PRESETS: dict[str, Preset] = {

@@ -118,7 +118,8 @@ class TrackConfig:
     ``kinematic``: the estimator's poses of the parts of one instrument estimated on the same frame are
     replaced by the instrument-consistent ones (:mod:`surftrack.pose.kinematic`), with ``kinematic_anchor``'s
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
-    ``kinematic_anchor_translation_weight`` times.
+    ``kinematic_anchor_translation_weight`` times. ``anchor_views``: crop views per box of the anchor
+    part (0: as the others' ``views``); with the fit, the anchor's depth places the whole instrument.
     """
 
     preset: str = "fast"
@@ -173,6 +174,7 @@ class TrackConfig:
     kinematic_anchor: str = "wrist"
     kinematic_anchor_weight: float = 10.0
     kinematic_anchor_translation_weight: float = 3.0
+    anchor_views: int = 0
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
 
     def __post_init__(self) -> None:
@@ -191,6 +193,8 @@ class TrackConfig:
             raise ValueError(f"preset must be one of {', '.join(sorted(PRESETS))}, got {self.preset!r}")
         if not 0 <= self.views <= 9:
             raise ValueError(f"views must be 0 (the preset's) or 1-9, got {self.views}")
+        if not 0 <= self.anchor_views <= 9:
+            raise ValueError(f"anchor_views must be 0 (as the other parts) or 1-9, got {self.anchor_views}")
         if self.solver_seed < 0:
             raise ValueError(f"solver_seed must be >= 0, got {self.solver_seed}")
         if self.keyframe_every < 1:
@@ -249,8 +253,11 @@ class TrackConfig:
         return dataclasses.asdict(self)
 
     def estimator_preset(self) -> Preset:
-        """The keyframes' estimator preset: ``preset`` with ``views`` where given and ``solver_seed``."""
+        """The keyframes' estimator preset: ``preset`` with ``views`` where given, ``anchor_views`` for the
+        instrument fit's anchor part where given (with ``kinematic``) and ``solver_seed``."""
         preset = PRESETS[self.preset] if self.views == 0 else PRESETS[self.preset].replace(views=self.views)
+        if self.kinematic and self.anchor_views:
+            preset = preset.replace(part_views=((self.kinematic_anchor, self.anchor_views),))
         return preset.replace(seed=self.solver_seed)
 
     def replace(self, **changes) -> TrackConfig:
