@@ -299,7 +299,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         print(f"surftrack eval: {r['n_instances']} instances in {r['n_images']} images of {args.data} "
               f"({args.split}), preset {r['preset']} (seed {r['seed']}"
               f"{'' if r['views'] == 1 else ', %d crop views per box' % r['views']}"
-              f"{''.join(f', {n} on {p}' for p, n in r.get('part_views', {}).items())})"
+              f"{''.join(f', {n} crop views on {p}' for p, n in r.get('part_views', {}).items())})"
               f"{', instrument-consistent poses' if r['kinematic_instruments'] else ''}, "
               f"{r['timings']['per_image_s_mean'] * 1e3:.0f} ms/image on {r['device']}")
         print(markdown_table(r), end="")

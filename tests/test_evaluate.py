@@ -317,7 +317,7 @@ def test_cli_eval_bad_inputs_and_run(tiny, tmp_path, capsys):
     assert main(["eval", "--model", str(ckpt), "--data", str(root), "--split", "train", "--preset", "fast",
                  "--max-images", "1", "--kinematic", "--anchor-views", "3", "--out", str(anchor), "--device", "cpu",
                  "--quiet"]) == 0
-    assert ", 3 on wrist)" in capsys.readouterr().out
+    assert ", 3 crop views on wrist)" in capsys.readouterr().out
     assert json.loads(anchor.read_text())["views"] == 1 and json.loads(anchor.read_text())["part_views"] == {"wrist": 3}
 
 
