@@ -577,33 +577,6 @@ def test_keyframe_preset_and_views():
         TrackConfig(preset="slow")
 
 
-def test_a_starting_part_s_frame_asks_with_more_views_on_the_anchor(tiny_ckpt, lnd_parts):
-    """``start_anchor_views``: where a part starts or comes back from the estimator alone, the frame's
-    estimator gives the fit's anchor that many crop views (sharing the model); other keyframes keep theirs."""
-    from surftrack.model import load_checkpoint
-    from surftrack.pose import PoseEstimator
-
-    cfg = TrackConfig(start_anchor_views=3)
-    assert cfg.start_preset() == cfg.estimator_preset().replace(part_views=(("wrist", 3),))
-    assert TrackConfig().start_preset() is None
-    assert TrackConfig(start_anchor_views=3, anchor_views=5).start_preset() is None  # already has more
-    assert TrackConfig(start_anchor_views=3, kinematic=False).start_preset() is None  # no fit, no anchor
-    assert TrackConfig(start_anchor_views=5, views=3).start_preset().views_of("wrist") == 5
-    with pytest.raises(ValueError, match="start_anchor_views must be 0"):
-        TrackConfig(start_anchor_views=10)
-    model = load_checkpoint(tiny_ckpt)[0]
-    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
-    est = PoseEstimator(model, cfg.estimator_preset(), device="cpu", crop_size=64)
-    tracker = Tracker(est, np.eye(3), (320, 256), specs, cfg)
-    for why, views in (("init", 3), ("reappearance", 3), ("cadence", 1), ("box disagreement", 1)):
-        chosen = tracker.estimator_for([(None, None, None, "cadence"), (None, None, None, why)])
-        assert chosen.preset.views_of("wrist") == views and chosen.model is model
-        assert chosen.preset.views_of("shaft") == 1 and chosen.crop_size == 64
-    assert est.preset.views_of("wrist") == 1  # the keyframes' own estimator is unchanged
-    assert Tracker(est, np.eye(3), (320, 256), specs, TrackConfig()).estimator_for(
-        [(None, None, None, "init")]) is est
-
-
 def test_tracking_settings_are_checked_with_the_file_named(tmp_path):
     from surftrack.track import TrackConfigError, load_track_config
 

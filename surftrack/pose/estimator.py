@@ -16,7 +16,6 @@ over pixel indices) is the edge box ``(x, y, w + 1, h + 1)`` (:func:`surftrack.g
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 import zlib
@@ -148,13 +147,6 @@ class PoseEstimator:
         twins = twin_labels({p.obj_id: (p.instrument, p.name) for p in self.model.parts}, instruments)
         # obj id -> the part its instrument's roll twin shows in its place (jaw_left <-> jaw_right)
         self.twin_partner = {} if twins is None else {a: b for a, b in twins.partner.items() if a != b}
-
-    def with_preset(self, preset: str | Preset) -> PoseEstimator:
-        """This estimator with another preset, sharing its model, device, crop settings and caches (a
-        tracker asking with other settings on some frames)."""
-        other = copy.copy(self)
-        other.preset = get_preset(preset)
-        return other
 
     @property
     def obj_ids(self) -> list[int]:

@@ -120,9 +120,6 @@ class TrackConfig:
     rotation weighted ``kinematic_anchor_weight`` times its score and its translation
     ``kinematic_anchor_translation_weight`` times. ``anchor_views``: crop views per box of the anchor
     part (0: as the others' ``views``); with the fit, the anchor's depth places the whole instrument.
-    ``start_anchor_views``: the anchor's crop views on a frame where a part starts or comes back from the
-    estimator alone (:data:`~surftrack.track.status.FRESH_STARTS`): a track's first pose has no earlier
-    frames to average its depth with (0: as on other keyframes).
     """
 
     preset: str = "fast"
@@ -178,7 +175,6 @@ class TrackConfig:
     kinematic_anchor_weight: float = 10.0
     kinematic_anchor_translation_weight: float = 3.0
     anchor_views: int = 0
-    start_anchor_views: int = 0
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
 
     def __post_init__(self) -> None:
@@ -197,9 +193,8 @@ class TrackConfig:
             raise ValueError(f"preset must be one of {', '.join(sorted(PRESETS))}, got {self.preset!r}")
         if not 0 <= self.views <= 9:
             raise ValueError(f"views must be 0 (the preset's) or 1-9, got {self.views}")
-        for name in ("anchor_views", "start_anchor_views"):
-            if not 0 <= getattr(self, name) <= 9:
-                raise ValueError(f"{name} must be 0 (as the other parts) or 1-9, got {getattr(self, name)}")
+        if not 0 <= self.anchor_views <= 9:
+            raise ValueError(f"anchor_views must be 0 (as the other parts) or 1-9, got {self.anchor_views}")
         if self.solver_seed < 0:
             raise ValueError(f"solver_seed must be >= 0, got {self.solver_seed}")
         if self.keyframe_every < 1:
@@ -264,16 +259,6 @@ class TrackConfig:
         if self.kinematic and self.anchor_views:
             preset = preset.replace(part_views=((self.kinematic_anchor, self.anchor_views),))
         return preset.replace(seed=self.solver_seed)
-
-    def start_preset(self) -> Preset | None:
-        """The estimator preset on frames where a part (re)starts (``start_anchor_views``), or None where
-        it is the keyframes' own."""
-        preset = self.estimator_preset()
-        if not (self.kinematic and self.start_anchor_views) or \
-                preset.views_of(self.kinematic_anchor) >= self.start_anchor_views:
-            return None
-        views = dict(preset.part_views) | {self.kinematic_anchor: self.start_anchor_views}
-        return preset.replace(part_views=tuple(views.items()))
 
     def replace(self, **changes) -> TrackConfig:
         return dataclasses.replace(self, **changes)

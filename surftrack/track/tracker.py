@@ -40,7 +40,7 @@ from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, 
 from surftrack.track.instrument import InstrumentKalman, PartFilter
 from surftrack.track.kalman import FilterStep, PoseKalman
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
-from surftrack.track.status import FRESH_STARTS, POSED, Diagnostics, Status
+from surftrack.track.status import POSED, Diagnostics, Status
 from surftrack.track.trocar import Trocar
 
 
@@ -291,8 +291,6 @@ class Tracker:
                  specs: Sequence[PartSpec], cfg: TrackConfig | None = None,
                  instruments: InstrumentRegistry = BUILTIN):
         self.estimator, self.cfg, self.instruments = estimator, cfg or TrackConfig(), instruments
-        start = self.cfg.start_preset()
-        self._start_estimator = estimator.with_preset(start) if start is not None else estimator
         self.K = np.asarray(K, np.float64)
         self.size = (int(image_size[0]), int(image_size[1]))
         self._described: dict[str, Instrument | None] = {}  # instrument key -> its description, if any
@@ -773,11 +771,6 @@ class Tracker:
                     requests.append((tr, box, tr.kf.pose, "instrument keyframe"))
         return requests, out_boxes
 
-    def estimator_for(self, requests: Sequence[tuple[_Track, Box, tuple | None, str]]) -> PoseEstimator:
-        """The estimator for one frame's ``requests``: with ``start_anchor_views`` where a part starts or
-        comes back (:data:`FRESH_STARTS`), else the keyframes' own."""
-        return self._start_estimator if any(why in FRESH_STARTS for _, _, _, why in requests) else self.estimator
-
     def _estimate(self, frame_rgb: np.ndarray, time_s: float,
                   requests: list[tuple[_Track, Box, tuple | None, str]]) -> None:
         """One batched estimator call for ``requests``, made instrument-consistent, and its results
@@ -786,7 +779,7 @@ class Tracker:
         t_est = time.perf_counter()
         groups = [tr.spec.instance for tr, _, _, _ in requests]
         boxes, priors = self._model_labels(requests)
-        results = self.estimator_for(requests).estimate(frame_rgb, [(tr.spec.obj_id, b) for (tr, _, _, _), b in zip(requests, boxes)],
+        results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for (tr, _, _, _), b in zip(requests, boxes)],
                                           K, priors=priors, groups=groups if cfg.twin_boxes else None)
         if self._kinematic is not None:
             results = apply_kinematics(results, groups, self.estimator.model.parts, self._kinematic,
