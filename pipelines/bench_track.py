@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
     ap.add_argument("--solver-seed", type=int, help="the estimator's RANSAC seed (default: the tracking config's)")
     ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
+    ap.add_argument("--anchor-views", type=int, help="crop views of the instrument fit's anchor (default: the config's)")
     ap.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     ap.add_argument("--lag-s", type=float, help="smoothing lag (default: the tracking config's)")
     ap.add_argument("--no-kinematic", action="store_true",
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     model_path = Path(args.model) if args.model else default_model_path()
     cfg = load_track_config(args.config)
-    for key in ("keyframe_every", "preset", "views"):
+    for key in ("keyframe_every", "preset", "views", "anchor_views"):
         if getattr(args, key):
             cfg = cfg.replace(**{key: getattr(args, key)})
     if args.solver_seed is not None:
@@ -106,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     model, tcfg, _ = load_checkpoint(model_path, args.device)
     on_gpu = torch.device(args.device).type == "cuda"
     dev = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU, {torch.get_num_threads()} threads"
-    print(f"model {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s), keyframe every "
+    anchor = "".join(f" ({n} on the {p})" for p, n in cfg.estimator_preset().part_views)
+    print(f"model {model_path}, preset {cfg.preset}, {cfg.estimator_preset().views} crop view(s){anchor}, keyframe every "
           f"{cfg.keyframe_every} frames{f' and {cfg.keyframe_max_s:g} s' if cfg.keyframe_max_s else ''} at most, kinematic fit {'on' if cfg.kinematic else 'off'}, smoothing lag "
           f"{cfg.smooth_lag_s:g} s, parts {', '.join(parts)}, device {dev}")
 

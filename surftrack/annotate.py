@@ -475,7 +475,8 @@ def evaluate_clips(checkpoint: str | Path, names: list[str], folders: dict[str, 
                    preset: str = "fast", views: int = 0, kinematic: bool = True, device: str | None = None,
                    instruments: InstrumentRegistry = BUILTIN, progress: bool = False,
                    anchor_views: int = 0) -> dict[str, dict]:
-    """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed:
+    """:func:`score_per_frame` on each clip (``folders[name]``, with its own det.json) for every solver seed
+    (``views`` crop views per box, ``anchor_views`` for the fit's anchor; 0: the preset's):
     name -> {"frames": n, "parts": {part: ADD-10 % mean over seeds}, "per_seed": [ADD-10 % over all
     part-frames, per seed], "per_seed_twin": the same with roll twins counted as a symmetry, or None}, what
     :func:`surftrack.pose.suite.clip_table` prints. A part's column is its name, or

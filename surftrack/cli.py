@@ -342,7 +342,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
         text += "\n" + _suite_clips_table(args, clips, seeds, registry)
     out = Path(args.out).with_suffix(".suite.md")
     out.parent.mkdir(parents=True, exist_ok=True)
-    views = "".join(f", {n} crop views on {p}" for p, n in preset.part_views)
+    views = (f", {preset.views} crop views" if preset.views > 1 else "") + \
+        "".join(f", {n} crop views on {p}" for p, n in preset.part_views)
     out.write_text(f"Model {args.model}, preset {preset.name}{views}{', kinematic fit' if args.kinematic else ''}, "
                    f"solver seeds {' '.join(map(str, seeds))}.\n\n{text}")
     print(text, end="")
@@ -352,7 +353,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
 
 def _suite_clips_table(args: argparse.Namespace, clips, seeds: list[int], registry) -> str:
     """Per-frame estimation on the suite's tracking clips (made in --suite-dir on first use), each solver
-    seed in ``seeds``, with --preset, --views and --kinematic as for the sets: the clips' table."""
+    seed in ``seeds``, with --preset, --views, --anchor-views and --kinematic as for the sets: the clips'
+    table."""
     from surftrack.annotate import evaluate_clips
     from surftrack.pose.suite import clip_table, make_suite_clips
 
@@ -380,6 +382,9 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
     if args.views is not None:
         cfg = cfg.replace(views=_checked_views(args.views))
     if args.anchor_views is not None:
+        if not cfg.kinematic:
+            raise CLIError("--anchor-views gives the instrument fit's anchor part more crop views: the config "
+                           "turns the fit off (kinematic: false)")
         cfg = cfg.replace(anchor_views=_checked_views(args.anchor_views, "--anchor-views"))
     if args.device == "cuda":
         import torch

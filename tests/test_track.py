@@ -573,6 +573,10 @@ def test_keyframe_preset_and_views():
     assert cfg.replace(anchor_views=3, kinematic=False).estimator_preset().part_views == ()
     with pytest.raises(ValueError, match="anchor_views must be 0"):
         TrackConfig(anchor_views=10)
+    from surftrack.cli import _track_config, build_parser
+
+    args = build_parser().parse_args(["track", "v.mp4", "--boxes", "d.json", "--anchor-views", "3"])
+    assert _track_config(args).estimator_preset().part_views == (("wrist", 3),)
     with pytest.raises(ValueError, match="preset must be one of accurate, fast, thorough"):
         TrackConfig(preset="slow")
 

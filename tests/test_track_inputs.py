@@ -166,6 +166,10 @@ def test_outputs_never_overwrite_inputs_or_the_last_run(clip, tiny_ckpt, tmp_pat
     assert last.read_bytes() == b"the last run"
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--views", "12"], "--views must be between 1 and 9")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--anchor-views", "0"], "--anchor-views must be between 1 and 9")
+    no_fit = tmp_path / "no_fit.yaml"
+    no_fit.write_text("kinematic: false\n")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--anchor-views", "3", "--config", str(no_fit)],
+           "turns the fit off")
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("preset: [fast\nkeyframe_every: 2\n")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", str(cfg)], "bad.yaml", "line 2, column 15")

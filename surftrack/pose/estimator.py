@@ -50,7 +50,7 @@ class PartPose:
     a placeholder on the box's ray). ``timings``: ms per stage (``forward`` and ``crop`` are this part's
     share of the batch; ``keys`` only on the first use of a part, when its surface keys are computed and
     cached), ``total`` their sum. ``crop_box`` (x0, y0, x1, y1) pixel edges and ``crop_K`` the
-    crop's intrinsics (of the unshifted view when the preset has several). With several views, ``timings``
+    crop's intrinsics (of the unshifted view when the box has several). With several views, ``timings``
     add up all views, ``score`` and ``n_inliers`` are the merged views' means, and ``counts`` are the
     reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged). ``prior_won``:
     the prior handed in scored best (the reference view's; None without a prior); ``kinematic``: the
@@ -144,6 +144,10 @@ class PoseEstimator:
         if solver_threads is not None and int(solver_threads) < 1:
             raise ValueError(f"solver_threads must be >= 1 or None, got {solver_threads}")
         self.solver_threads = None if solver_threads is None else int(solver_threads)
+        unknown = sorted({n for n, _ in self.preset.part_views} - {p.name for p in self.model.parts})
+        if unknown:
+            raise ValueError(f"crop views asked for {', '.join(unknown)}, not a part of the model (parts: "
+                             f"{', '.join(sorted({p.name for p in self.model.parts}))})")
         twins = twin_labels({p.obj_id: (p.instrument, p.name) for p in self.model.parts}, instruments)
         # obj id -> the part its instrument's roll twin shows in its place (jaw_left <-> jaw_right)
         self.twin_partner = {} if twins is None else {a: b for a, b in twins.partner.items() if a != b}
