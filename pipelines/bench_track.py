@@ -62,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", help="estimator preset (default: the tracking config's)")
     ap.add_argument("--solver-seed", type=int, help="the estimator's RANSAC seed (default: the tracking config's)")
     ap.add_argument("--views", type=int, help="crop views per box (default: the preset's)")
-    ap.add_argument("--anchor-views", type=int, help="crop views of the instrument fit's anchor (default: the config's)")
+    ap.add_argument("--anchor-views", type=int, help="crop views of the instrument fit's anchor part "
+                    "(default: the config's)")
     ap.add_argument("--config", help="tracking YAML (default: configs/track/default.yaml)")
     ap.add_argument("--lag-s", type=float, help="smoothing lag (default: the tracking config's)")
     ap.add_argument("--no-kinematic", action="store_true",

@@ -203,8 +203,9 @@ def evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_i
     dataset ``data_dir`` with ground-truth boxes and return the JSON-ready result:
 
     ``{"checkpoint", "data_dir", "split", "preset", "views" (crop views per box), "part_views" (part name ->
-    its own views, where it differs), "device", "n_images", "n_instances", "occlusion", "diameters", "parts": {label: {obj_id, instrument, part, diameter_bop_mm, diameter_surgripe_mm,
-    non_occ|occ|all: stats}}, "overall": {non_occ|occ|all: stats}, "timings", "accuracy_curve",
+    its own views, where it differs), "device", "n_images", "n_instances", "occlusion", "diameters",
+    "parts": {label: {obj_id, instrument, part, diameter_bop_mm, diameter_surgripe_mm, non_occ|occ|all:
+    stats}}, "overall": {non_occ|occ|all: stats}, "timings", "accuracy_curve",
     "instances": [...], "warnings": [...]}`` with stats as :func:`group_stats`.
 
     ``max_images``: only the first N images (in (scene_id, im_id) order); ``images``: only these
