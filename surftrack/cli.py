@@ -251,6 +251,14 @@ def _checked_views(views: int, flag: str = "--views") -> int:
     return views
 
 
+def _checked_anchor_views(args: argparse.Namespace, fit: bool, without_fit: str) -> int:
+    """``--anchor-views``, or a CLIError when it is out of range or there is no instrument fit (``fit``
+    False; ``without_fit`` says why) whose anchor would get the views."""
+    if not fit:
+        raise CLIError(f"--anchor-views gives the instrument fit's anchor part more crop views: {without_fit}")
+    return _checked_views(args.anchor_views, "--anchor-views")
+
+
 def _eval_preset(args: argparse.Namespace):
     """``eval``'s estimator preset: --preset with --views and --anchor-views."""
     from surftrack.pose.kinematic import KinematicConfig
@@ -260,11 +268,8 @@ def _eval_preset(args: argparse.Namespace):
     if args.views is not None:
         preset = preset.replace(views=_checked_views(args.views))
     if args.anchor_views is not None:
-        if not args.kinematic:
-            raise CLIError("--anchor-views gives the instrument fit's anchor part more crop views: "
-                           "it needs --kinematic")
-        preset = preset.replace(part_views=((KinematicConfig().anchor, _checked_views(args.anchor_views,
-                                                                                      "--anchor-views")),))
+        n = _checked_anchor_views(args, args.kinematic, "it needs --kinematic")
+        preset = preset.replace(part_views=((KinematicConfig().anchor, n),))
     return preset
 
 
@@ -382,10 +387,8 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
     if args.views is not None:
         cfg = cfg.replace(views=_checked_views(args.views))
     if args.anchor_views is not None:
-        if not cfg.kinematic:
-            raise CLIError("--anchor-views gives the instrument fit's anchor part more crop views: the config "
-                           "turns the fit off (kinematic: false)")
-        cfg = cfg.replace(anchor_views=_checked_views(args.anchor_views, "--anchor-views"))
+        cfg = cfg.replace(anchor_views=_checked_anchor_views(args, cfg.kinematic,
+                                                             "the config turns the fit off (kinematic: false)"))
     if args.device == "cuda":
         import torch
 
