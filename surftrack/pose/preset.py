@@ -71,13 +71,13 @@ class Preset:
         if not 1 <= self.views <= 9 or not 0 <= self.view_shift <= 0.5 or not self.view_radius_deg > 0:
             raise ValueError(f"preset {self.name}: need 1 <= views <= 9, 0 <= view_shift <= 0.5 and "
                              f"view_radius_deg > 0")
-        pairs = tuple(tuple(p) if isinstance(p, (tuple, list)) else p for p in self.part_views) \
-            if isinstance(self.part_views, (tuple, list)) else None
-        if pairs is None or any(not (len(p) == 2 and isinstance(p[0], str) and isinstance(p[1], int)
-                                     and not isinstance(p[1], bool) and 1 <= p[1] <= 9)
-                                if isinstance(p, tuple) else True for p in pairs):
+        def pair(p) -> bool:
+            return (isinstance(p, (tuple, list)) and len(p) == 2 and isinstance(p[0], str)
+                    and isinstance(p[1], int) and not isinstance(p[1], bool) and 1 <= p[1] <= 9)
+
+        if not isinstance(self.part_views, (tuple, list)) or not all(pair(p) for p in self.part_views):
             raise ValueError(f"preset {self.name}: part_views must be (part name, 1-9) pairs, got {self.part_views!r}")
-        object.__setattr__(self, "part_views", pairs)  # hashable, whatever sequence was given
+        object.__setattr__(self, "part_views", tuple(tuple(p) for p in self.part_views))  # hashable
         if not 0 < self.depth_range[0] < self.depth_range[1]:
             raise ValueError(f"preset {self.name}: invalid depth_range {self.depth_range}")
 
