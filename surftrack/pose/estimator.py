@@ -144,10 +144,11 @@ class PoseEstimator:
         if solver_threads is not None and int(solver_threads) < 1:
             raise ValueError(f"solver_threads must be >= 1 or None, got {solver_threads}")
         self.solver_threads = None if solver_threads is None else int(solver_threads)
-        unknown = sorted({n for n, _ in self.preset.part_views} - {p.name for p in self.model.parts})
+        names = {p.name for p in self.model.parts}
+        unknown = sorted({n for n, _ in self.preset.part_views} - names)
         if unknown:
             raise ValueError(f"crop views asked for {', '.join(unknown)}, not a part of the model (parts: "
-                             f"{', '.join(sorted({p.name for p in self.model.parts}))})")
+                             f"{', '.join(sorted(names))})")
         twins = twin_labels({p.obj_id: (p.instrument, p.name) for p in self.model.parts}, instruments)
         # obj id -> the part its instrument's roll twin shows in its place (jaw_left <-> jaw_right)
         self.twin_partner = {} if twins is None else {a: b for a, b in twins.partner.items() if a != b}
