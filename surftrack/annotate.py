@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Mapping, Sequence
@@ -154,20 +155,28 @@ def _frames_to_read(info, end: float | None) -> int | None:
 
 def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Path, opts: AnnotateOptions,
                    size: tuple[int, int], specs: list[PartSpec]) -> None:
-    """Refuse, before any file is opened, outputs that would overwrite an input or one another, and
-    overlay or TUM settings their writers would only refuse after the MCAP had been started."""
+    """Refuse, before any file is opened, outputs that would overwrite an input or one another, output
+    files of the wrong kind or where no file can be written, and overlay or TUM settings their writers
+    would only refuse after the MCAP had been started."""
     from surftrack.io.overlay import check_overlay_video
     from surftrack.io.tum import tum_filename
 
     taken = {Path(p).resolve(): what for what, p in (("the input video", video), ("the boxes", boxes),
                                                      ("the camera file", camera), ("the model", model))}
-    for what, p in (("the MCAP", out), ("--overlay", opts.overlay), ("--joints-csv", opts.joints_csv)):
+    for what, p, suffix in (("the MCAP", out, ".mcap"), ("--overlay", opts.overlay, None),
+                            ("--joints-csv", opts.joints_csv, ".csv")):
         if p is None:
             continue
-        r = Path(p).resolve()
+        p = Path(p)
+        r = p.resolve()
         if r in taken:
             raise InputError(f"{p}: {what} would overwrite {taken[r]}")
         taken[r] = what
+        if suffix is not None and p.suffix.lower() != suffix:
+            raise InputError(f"{p}: {what} must be a {suffix} file")
+        _output_folder(p, what)
+    if opts.export_tum is not None and Path(opts.export_tum).exists() and not Path(opts.export_tum).is_dir():
+        raise InputError(f"{opts.export_tum}: --export-tum names a file; give a folder")
     if opts.overlay is not None:
         try:
             check_overlay_video(opts.overlay, *size)
@@ -183,6 +192,14 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
             if f in files:
                 raise InputError(f"{boxes}: parts {files[f]!r} and {s.name!r} would share the TUM file {f}")
             files[f] = s.name
+
+
+def _output_folder(path: Path, what: str) -> None:
+    """:class:`InputError` naming ``path`` unless an output file can go there (its folder exists)."""
+    if path.is_dir():
+        raise InputError(f"{path}: {what} names a folder; give a file")
+    if not path.parent.is_dir():
+        raise InputError(f"{path}: no folder {path.parent} for {what}")
 
 
 @dataclass
@@ -224,6 +241,9 @@ def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple 
             raise InputError(f"{video}: no intrinsics: pass --camera camera.json (K, width, height), or put a "
                              f"camera.json beside the video")
     cam = load_camera(camera, size)
+    for flag, v in (("--start", opts.start), ("--end", opts.end)):
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise InputError(f"{flag} {v:g}: give seconds of video from its start (>= 0)")
     if opts.start is not None and opts.end is not None and opts.end <= opts.start:
         raise InputError(f"--end {opts.end} must be after --start {opts.start}")
     if opts.start is not None and info.duration_s and opts.start >= info.duration_s:
@@ -452,7 +472,7 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
         res = (est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K,
                             groups=groups if cfg.twin_boxes else None) if pids else [])
         if kin is not None:
-            res = apply_kinematics(res, groups, model.parts, kin)
+            res = apply_kinematics(res, groups, model.parts, kin, instruments)
         got = {p: r for p, r in zip(pids, res) if r.ok}
         states = [PartState(s, "keyframe" if p in got else "lost",
                             float(1.0 - np.exp(-max(got[p].score, 0.0))) if p in got else 0.0,

@@ -960,7 +960,7 @@ def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():
     from surftrack.cli import _track_config, build_parser
 
     cfg = TrackConfig(keyframe_every=10, keyframe_max_s=0.34)
-    assert [cfg.for_fps(f).keyframe_every for f in (60.0, 30.0, 25.0, 15.0, 5.0, 1.0)] == [10, 10, 8, 5, 2, 1]
+    assert [cfg.for_fps(f).keyframe_every for f in (60.0, 30.0, 25.0, 20.0, 15.0, 5.0, 1.0)] == [10, 10, 8, 6, 5, 1, 1]
     assert cfg.replace(keyframe_max_s=0.0).for_fps(15.0).keyframe_every == 10
     assert cfg.for_fps(0.0) is cfg  # unknown frame rate: frames only
     with pytest.raises(ValueError, match="keyframe_max_s"):

@@ -1,9 +1,11 @@
 """Temporal tracking of per-part poses.
 
-:class:`Tracker` runs the per-part state machine (:mod:`.tracker`): the pose estimator initialises and
-recovers parts, pyramidal LK on model points plus PnP (:mod:`.flow`) measures between keyframes, and
-:class:`PoseKalman` (:mod:`.kalman`, 12-state error-state constant velocity, gated before update) fuses
-them; the parts of a described instrument share one articulated state (:mod:`.instrument`). :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
+:class:`Tracker` runs the per-part state machine (:mod:`.tracker`): the pose estimator initialises,
+recovers and re-measures parts on keyframes; between them each instrument's silhouette, by colour
+statistics along lines normal to its rendered outline (:mod:`.region`), measures it (pyramidal LK on
+model points plus PnP, :mod:`.flow`, is the option); :class:`PoseKalman` (:mod:`.kalman`, 12-state
+error-state constant velocity, gated before update) fuses them, one per part, or the parts of a
+described instrument share one articulated state (:mod:`.instrument`, ``articulated``). :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
 :mod:`.config` holds the settings (``configs/track/default.yaml``); :mod:`.smoother` smooths the filter's
 states backward for offline runs; :mod:`.status` names a part's status on a frame and its diagnostics.
 """

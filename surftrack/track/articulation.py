@@ -32,12 +32,13 @@ from surftrack.track.tracker import PartState
 
 
 class ArticulationTracker:
-    """Per (instrument, instance): ``update(states)`` -> the frame's :class:`JointFit` or None (no
-    posed part)."""
+    """Per (instrument, instance): ``update(states)`` -> the frame's :class:`JointFit`, or None when no
+    part is posed or the fit fails."""
 
     def __init__(self, instrument: Instrument | str, trocar_after: int = 30, trocar_every: int = 30,
                  history: int = 300, trocar_patience: int = 10):
         self.instrument = load_instrument(instrument) if isinstance(instrument, str) else instrument
+        self.root = self.instrument.chain.order[0]  # the part whose axis passes the trocar (the shaft)
         self.prev: JointFit | None = None
         self.trocar: np.ndarray | None = None
         self.axes: deque = deque(maxlen=history)
@@ -52,7 +53,7 @@ class ArticulationTracker:
         weights = {s.spec.part: max(s.confidence, 0.05) for s in states if s.spec.part in poses}
         try:
             fit = fit_configuration(self.instrument, poses, weights=weights, trocar_mm=self.trocar, init=self.prev)
-            if self.trocar is not None and "shaft" in fit.parts_used:
+            if self.trocar is not None and self.root in fit.parts_used:
                 self._trocar_misses = 0 if fit.ok else self._trocar_misses + 1
                 if self._trocar_misses >= self.trocar_patience:  # the camera moved: start the trocar afresh
                     self.trocar, self._trocar_misses = None, 0
@@ -61,7 +62,7 @@ class ArticulationTracker:
         except ValueError:
             return None
         self.prev = fit
-        if "shaft" in fit.parts_used and fit.ok:
+        if self.root in fit.parts_used and fit.ok:
             self.axes.append((fit.base_R, fit.base_t))
             self._since_trocar += 1
             if len(self.axes) >= self.trocar_after and (self.trocar is None or self._since_trocar >= self.trocar_every):

@@ -99,7 +99,8 @@ class TrackScore:
             scored = vis >= self.min_visible_px and s.R is not None
             a = add(s.R, s.t, Rg, tg, self._pts[name]) if scored else None
             prev = self._prev.get(name)
-            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence, a)
+            # a step counts from a frame where the part was scored (visible) to the next such frame
+            self._prev[name] = (index, s.R, s.t, Rg, tg, time_s, s.confidence, a) if vis >= self.min_visible_px else None
             if vis < self.min_visible_px:
                 continue
             row["visible"] += 1

@@ -31,7 +31,7 @@ class TrackConfig:
     frames, 86.8 / 48.6 / 49.3 / 43.7 % every 5, that is every 0.33 s as at 30 fps). ``min_box_score``: detections below are
     ignored. ``min_iou``: a detection box overlapping the part's projected box less than this triggers a
     re-initialisation (the track has drifted or jumped to another tool). ``max_predicted``: frames in a
-    row without an accepted flow measurement before the estimator is asked again. ``min_visible``: a
+    row without an accepted silhouette or flow measurement before the estimator is asked again. ``min_visible``: a
     part whose projected box keeps less than this fraction inside the image is lost, unless a detection
     agrees with it (IoU >= ``min_iou``: a long shaft keeps a small share of its box in view).
     ``max_occluded``: frames a tracked part the estimator does not see keeps its predicted pose while
@@ -70,7 +70,9 @@ class TrackConfig:
     instrument whose root part (the shaft) is tracked (:mod:`surftrack.track.instrument`: the root's pose
     and the joints, each with its rate); its parts are views of it through the forward kinematics, so
     every measurement of one part (keyframe, silhouette) moves the others consistently, a hidden part
-    keeps the pose the rest implies and the joints are read off the state. On eight held-out clips it
+    keeps the pose the rest implies and the joints are read off the state (its rates do not decay:
+    ``kalman.coast_tau_s`` is a per-part filter's, and ``region_joint_std_deg`` gives way to the state's
+    own joint covariance as the silhouette fit's prior). On eight held-out clips it
     scored +6.0 / -1.8 / +6.2 / +1.0 points of ADD-10 against a filter per part, within the clips'
     spread; on the 15 fps demo clip its wrist and jaws lose 20-28 points and their confidence does
     not rank their errors (docs/results/2026-12-03-articulated.md, 2026-12-03-confidence.md), so it is
@@ -247,7 +249,8 @@ class TrackConfig:
         of video where that is tighter (at least 1 frame)."""
         if self.keyframe_max_s <= 0 or not (fps and math.isfinite(fps) and fps > 0):
             return self
-        return self.replace(keyframe_every=min(self.keyframe_every, max(1, int(round(self.keyframe_max_s * fps)))))
+        # floor (with a hair for 0.34 s x 30 fps = 10.2): the bound in seconds is a bound, not a target
+        return self.replace(keyframe_every=min(self.keyframe_every, max(1, math.floor(self.keyframe_max_s * fps + 1e-9))))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

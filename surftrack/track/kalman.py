@@ -69,9 +69,9 @@ class KalmanConfig:
       (``max_rejections`` estimates in a row that disagree restart the pose).
     * ``ang_accel_std_rad_s2 = 3``: wrist / shaft roll reaches ~1-3 rad/s; 5 let the estimator's shaft roll
       flips through on the tuning clip.
-    * ``meas_pos_std_mm = 3``, ``meas_rot_std_deg = 3``: typical per-frame pose-estimator errors for a part
-      of ~10-50 mm at endoscope distances (depth is worse than lateral; pass a full ``meas_cov`` to
-      ``update`` when the estimator provides one).
+    * ``meas_pos_std_mm = 3``, ``meas_rot_std_deg = 3``: the covariance of a measurement given without
+      one (``init`` / ``update`` with ``meas_cov=None``). The tracker always passes its own (the
+      estimator's: TrackConfig ``est_*_std``; the silhouette's and flow's from their fits).
     * ``init_vel_std_mm_s = 100``, ``init_omega_std_rad_s = 2``: uncertainty of the unknown initial
       velocities.
     * ``gate_chi2 = 22.46``: chi2 with 6 dof at 99.9 %; ``max_rejections = 8`` consecutive rejections mark

@@ -436,7 +436,9 @@ class Tracker:
                 shared = None
                 if isinstance(tr.kf, PartFilter):
                     key = f"{tr.spec.instrument}.{tr.spec.instance}"
-                    snap = snaps.setdefault(key, tr.kf.shared.snapshot())
+                    if key not in snaps:
+                        snaps[key] = tr.kf.shared.snapshot()
+                    snap = snaps[key]
                     shared, step = (key, tr.kf.shared, snap), tr.kf.shared.part_step(snap, tr.spec.name)
                 else:
                     step = tr.kf.snapshot()
