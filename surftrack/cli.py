@@ -1,8 +1,8 @@
 """The ``surftrack`` command line.
 
 The main command tracks a video: ``surftrack VIDEO --boxes DET.json --camera CAMERA.json`` (the same as
-``surftrack track ...``). Other subcommands: demo, instruments, synth, synth-clip, join, train, eval, analyze,
-recover.
+``surftrack track ...``). Other subcommands: batch, demo, instruments, synth, synth-clip, join, train, eval,
+analyze, recover.
 """
 
 from __future__ import annotations
@@ -474,12 +474,18 @@ def _cmd_join(args: argparse.Namespace) -> int:
 def _cmd_analyze(args: argparse.Namespace) -> int:
     from surftrack.io.analyze import analyze_mcap, format_analysis, plot_analysis
 
+    png = Path(args.png) if args.png else Path(args.mcap).with_suffix(".analysis.png")
+    if png.suffix.lower() not in (".png", ".jpg", ".jpeg", ".pdf", ".svg"):
+        raise CLIError(f"--png {png}: give a .png, .jpg, .pdf or .svg file")
+    if png.resolve() == Path(args.mcap).resolve():
+        raise CLIError(f"--png {png}: would overwrite the MCAP it analyses")
+    if not png.parent.is_dir():
+        raise CLIError(f"--png {png}: no folder {png.parent}")
     try:
         s = analyze_mcap(args.mcap, min_confidence=args.min_confidence)
     except ValueError as e:
         raise CLIError(str(e)) from None
     print(format_analysis(s).rstrip("\n"))
-    png = Path(args.png) if args.png else Path(args.mcap).with_suffix(".analysis.png")
     plot_analysis(s, png)
     print(f"wrote {png}")
     return 0
@@ -621,13 +627,14 @@ def build_parser() -> argparse.ArgumentParser:
                                      "every_frame (the estimator on every frame), articulated (one state per "
                                      "instrument, its parts views of it)")
     tk.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
-    tk.add_argument("--start", type=float, help="first second of video to track")
-    tk.add_argument("--end", type=float, help="last second of video to track")
+    tk.add_argument("--start", type=float, help="start time of the stretch to track (s from the video's start)")
+    tk.add_argument("--end", type=float, help="end time of the stretch to track (s)")
     tk.add_argument("--overlay", metavar="OUT.mp4", help="also write a video with axes, outlines and status")
     tk.add_argument("--export-tum", metavar="DIR", help="also write one TUM trajectory per part (metres)")
     tk.add_argument("--images", action="store_true", help="store JPEG frames and annotations in the MCAP")
     tk.add_argument("--joints-csv", metavar="CSV",
-                    help="also write the joint angles per frame (degrees, with their standard deviations) as CSV")
+                    help="also write the joint angles per frame (degrees) as CSV (with their standard "
+                         "deviations under --config articulated)")
     tk.add_argument("--no-joints", action="store_true", help="skip the per-frame joint-angle fit")
     tk.add_argument("--instrument", action="append", metavar="YAML", dest="instrument_files",
                     help="your instrument's description (the YAML its model was trained from), for joint angles "

@@ -56,6 +56,9 @@ def read_config_yaml(path: str | Path, kind: str, what: str, error: type[Excepti
     p = Path(path)
     if not p.suffix and not p.exists():
         p = configs_dir() / kind / f"{path}.yaml"
+        if not p.is_file():
+            names = ", ".join(sorted(f.stem for f in (configs_dir() / kind).glob("*.yaml")))
+            raise error(f"{path}: no such {what} (a YAML file, or one of the bundled: {names})")
     try:
         return p, yaml.safe_load(p.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:

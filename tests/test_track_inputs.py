@@ -137,6 +137,16 @@ def test_unwritable_output_and_bad_options(clip, tiny_ckpt, tmp_path, capsys):
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"-o": str(d)}), "a_dir.mcap")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"--model": str(tmp_path / "m.pt")}), "m.pt")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--start", "2", "--end", "1"], "--end")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--start", "-1"], "--start -1")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path, **{"-o": str(tmp_path / "out.txt")}), "out.txt", ".mcap")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--joints-csv", str(tmp_path / "nodir" / "j.csv")],
+           "j.csv", "no folder")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--joints-csv", str(tmp_path / "j.txt")], "j.txt", ".csv")
+    (tmp_path / "tum_file").write_text("")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--export-tum", str(tmp_path / "tum_file")], "tum_file")
+    assert not (tmp_path / "out.mcap").exists()  # every output checked before the MCAP is opened
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", "no_such_config"], "no_such_config",
+           "every_frame")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--keyframe-every", "0"], "--keyframe-every")
     cfg = tmp_path / "t.yaml"
     cfg.write_text("keyframe_evry: 3\n")
@@ -272,6 +282,9 @@ def test_analyze_bad_file(tmp_path, capsys):
     bad.write_bytes(b"not an mcap file at all")
     _check(capsys, ["analyze", str(bad)], "junk.mcap")
     _check(capsys, ["analyze", str(tmp_path / "missing.mcap")], "missing.mcap")
+    _check(capsys, ["analyze", str(bad), "--png", str(bad)], "--png", ".png")
+    _check(capsys, ["analyze", str(bad), "--png", str(tmp_path / "junk.png.mcap")], ".png")
+    _check(capsys, ["analyze", str(bad), "--png", str(tmp_path / "nodir" / "a.png")], "no folder")
 
 
 def test_an_error_during_a_smoothed_run_still_writes_every_tracked_frame(clip, tiny_ckpt, tmp_path):
