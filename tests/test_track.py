@@ -352,6 +352,88 @@ def test_box_helpers():
     assert box is None and inside == 0.0
 
 
+def test_the_projected_box_centre_and_its_derivative():
+    """The centre of :func:`projected_box` (unclipped) and its derivative against central differences."""
+    from surftrack.geometry.transforms import so3_exp
+    from surftrack.track.tracker import projected_box_centre
+
+    K = np.array([[300.0, 0, 160], [0, 310.0, 128], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    verts = rng.normal(size=(200, 3)) * [2.0, 3.0, 8.0]
+    R, t = so3_exp(np.array([0.3, -0.2, 0.5])), np.array([4.0, -6.0, 90.0])
+    centre, J = projected_box_centre(K, R, t, verts)
+    box, inside = projected_box(K, R, t, verts, (320, 256))
+    assert inside == 1.0
+    np.testing.assert_allclose(centre, [box[0] + box[2] / 2, box[1] + box[3] / 2], atol=1e-9)
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        cp = projected_box_centre(K, R @ so3_exp(d[3:]), t + d[:3], verts)[0]
+        cm = projected_box_centre(K, R @ so3_exp(-d[3:]), t - d[:3], verts)[0]
+        np.testing.assert_allclose((cp - cm) / (2 * h), J[:, k], rtol=1e-4, atol=1e-4)
+
+
+def _box_tracker(tiny_ckpt, lnd_parts, **cfg):
+    """A tracker of the wrist alone that measures nothing but its detection boxes (and never asks the
+    untrained estimator). A box does not see the part's depth or rotation, which keyframes and
+    silhouettes measure in a real run: here they start tight and stay so."""
+    from surftrack.track.kalman import KalmanConfig
+
+    from surftrack.model import load_checkpoint
+    from surftrack.pose import PoseEstimator
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    info = next(p for p in model.parts if p.name == "wrist")
+    spec = PartSpec(lnd_parts["wrist"], info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
+    K = np.array([[250.0, 0, 160], [0, 250.0, 128], [0, 0, 1]])
+    tight = KalmanConfig(ang_accel_std_rad_s2=0.01, init_omega_std_rad_s=0.01, init_vel_std_mm_s=5.0)
+    cfg = TrackConfig(keyframe_every=10_000, max_predicted=10_000, flow=False, region=False, kinematic=False,
+                      min_iou=0.0, est_pos_std_mm=0.5, est_rot_std_deg=0.5, kalman=tight, **cfg)  # no re-init
+    return Tracker(PoseEstimator(model, "fast", device="cpu", crop_size=64), K, (320, 256), [spec], cfg), spec, K
+
+
+@pytest.mark.parametrize("box_centre", [True, False])
+def test_a_detection_box_the_track_cannot_explain_pulls_it_back(tiny_ckpt, lnd_parts, box_centre):
+    """A track seeded 10 mm beside the part (30 px), nothing else measuring it: the detection box's centre,
+    far outside the gate, brings it back to where the box no longer contradicts it (off: it stays)."""
+    tracker, spec, K = _box_tracker(tiny_ckpt, lnd_parts, box_centre=box_centre)
+    R, t = np.eye(3), np.array([0.0, 0.0, 80.0])
+    tracker.set_pose(spec.track_id, R, t + [10.0, 0.0, 0.0], 0.0)
+    frame = np.zeros((256, 320, 3), np.uint8)
+    box = projected_box(K, R, t, spec.vertices, (320, 256))[0]
+    fused = 0
+    for i in range(1, 9):
+        state = tracker.step(frame, i / 30.0, {spec.track_id: [(box, 0.9)]})[0]
+        fused += state.info.box_d2 is not None
+    lateral = abs(state.t[0] - t[0])
+    assert (lateral < 5.0 and fused >= 1) if box_centre else (lateral > 9.5 and fused == 0), (lateral, fused)
+
+
+@pytest.mark.parametrize("accel", [1000.0, 0.0])
+def test_a_box_that_runs_off_widens_the_prediction(tiny_ckpt, lnd_parts, accel):
+    """A part at rest that starts across the image at 120 mm/s: the boxes, falling outside the gate of
+    a motion prior of 30 mm/s^2, widen the prediction (box_manoeuvre_accel_mm_s2) and the track keeps
+    up (its projected box's centre on the detection's); without the widening it falls behind, every box
+    gated out."""
+    tracker, spec, K = _box_tracker(tiny_ckpt, lnd_parts, box_manoeuvre_accel_mm_s2=accel)
+    R, t0 = np.eye(3), np.array([-15.0, 0.0, 80.0])
+    frame = np.zeros((256, 320, 3), np.uint8)
+    tracker.set_pose(spec.track_id, R, t0, 0.0)
+    lags, widened = [], 0
+    for i in range(1, 16):
+        t = t0 + [max(i - 3, 0) * 4.0, 0.0, 0.0]  # still for 3 frames, then 4 mm a frame at 30 fps
+        box = projected_box(K, R, t, spec.vertices, (320, 256))[0]
+        state = tracker.step(frame, i / 30.0, {spec.track_id: [(box, 0.9)]})[0]
+        tracked = projected_box(K, state.R, state.t, spec.vertices, (320, 256))[0]
+        lags.append(abs(tracked[0] + tracked[2] / 2 - box[0] - box[2] / 2))  # px
+        widened += bool(state.info.manoeuvre)
+    if accel > 0:
+        assert widened >= 1 and max(lags[-8:]) < 3.0, lags
+    else:
+        assert widened == 0 and max(lags[-5:]) > 30.0, lags
+
+
 @pytest.mark.parametrize("articulated", [False, True])
 def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys, articulated):
     """`surftrack VIDEO --boxes ...`: every frame of every tracked part gets a status, poses go to the
