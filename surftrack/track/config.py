@@ -34,17 +34,6 @@ class TrackConfig:
     row without an accepted silhouette or flow measurement before the estimator is asked again. ``min_visible``: a
     part whose projected box keeps less than this fraction inside the image is lost, unless a detection
     agrees with it (IoU >= ``min_iou``: a long shaft keeps a small share of its box in view).
-    ``box_centre``: a part's detection box as a measurement of where its projected box is centred (two
-    pixel coordinates, the detector's evidence, independent of the estimator; ``box_centre_std`` of the
-    box's width / height plus ``box_centre_floor_px``), considered only while the projected box lies in
-    the image and the detection's width and height agree with it within ``box_size_ratio`` (a detector
-    boxes what is visible: a hidden or cut part's box is smaller and off-centre). A box outside the
-    filter's gate says the part is manoeuvring: that frame's prediction is widened across the line of
-    sight by a white-noise acceleration of ``box_manoeuvre_accel_mm_s2`` (the motion prior's 30 mm/s^2
-    cannot follow a tool that leaves or re-enters the view at 100-150 mm/s, and its gate then kept every
-    measurement of the move out), and the part's boxes are fused from then until ``box_manoeuvre_s``
-    after the last such box. At rest they are not: the silhouette and the keyframes place a part better
-    than a box, whose jitter fused on every frame lengthened the held-out paths.
     ``max_occluded``: frames a tracked part the estimator does not see keeps its predicted pose while
     another part of its instrument is measured (hidden behind the other tool; the smoother bridges the
     gap when it is back).
@@ -162,12 +151,6 @@ class TrackConfig:
     trocar_floor_mm: float = 2.0
     min_box_score: float = 0.3
     min_iou: float = 0.2
-    box_centre: bool = True
-    box_centre_std: float = 0.05
-    box_centre_floor_px: float = 2.0
-    box_size_ratio: float = 1.5
-    box_manoeuvre_accel_mm_s2: float = 1000.0
-    box_manoeuvre_s: float = 0.33
     max_predicted: int = 3
     max_occluded: int = 30
     min_visible: float = 0.15
@@ -237,16 +220,13 @@ class TrackConfig:
             raise ValueError("trocar needs articulated: true (it constrains an instrument's state)")
         if self.min_points < 4:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
-        if not (math.isfinite(self.box_size_ratio) and self.box_size_ratio >= 1.0):
-            raise ValueError(f"box_size_ratio must be >= 1, got {self.box_size_ratio}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg",
                      "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm",
                      "region_max_std_deg", "joint_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm",
-                     "twin_match_margin", "twin_align_max_deg", "box_centre_std", "box_centre_floor_px",
-                     "box_manoeuvre_accel_mm_s2", "box_manoeuvre_s"):
+                     "twin_match_margin", "twin_align_max_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.keyframe_max_s) and self.keyframe_max_s >= 0):

@@ -344,20 +344,6 @@ class PoseKalman:
         self.time = float(time)
         self.prior = FilterPrior(F, R_next.copy(), xn.copy(), self.kf.P.copy())
 
-    def add_process_noise(self, accel_cov: np.ndarray, dt: float) -> None:
-        """Widen this frame's prediction by a white-noise acceleration of the position with covariance
-        ``accel_cov`` (3x3, (mm/s^2)^2, camera axes) over ``dt`` s, on top of the motion prior's: the
-        part is manoeuvring. Call after :meth:`predict` and before any update; the recorded prior is
-        widened alike, so the smoother allows the manoeuvre too."""
-        self._require_init()
-        dt = float(dt)
-        Q = np.zeros((12, 12))
-        Q[0:6, 0:6] = np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]),
-                              np.asarray(accel_cov, np.float64))
-        self.kf.P = self.kf.P + Q
-        if self.prior is not None:
-            self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, self.prior.P + Q)
-
     def restart(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray, widen: np.ndarray) -> None:
         """Take a pose measurement the filter disbelieves (it would be gated out, or the filter is
         overconfident): go back to this frame's prediction, add ``widen`` (6x6, mm^2 then rad^2) to its

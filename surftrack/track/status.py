@@ -71,8 +71,6 @@ class Diagnostics:
     with their covariances). Flow: ``points`` followed, ``inliers``, ``inlier_ratio``, ``rms_px`` of its
     PnP, ``flow_ms``, ``refresh_ms`` (picking new points). Region: ``region_lines`` correspondence lines,
     ``agreement`` the share of line pixels on the right side of the fitted outline, ``region_ms``.
-    Box: ``box_d2`` the fused detection-box centre's squared Mahalanobis distance, ``manoeuvre`` whether
-    that box widened the prediction (TrackConfig ``box_centre``).
     ``source``: ``set_pose`` when the pose was given from outside. ``occluded``: frames held in a row
     while hidden and the rest of the instrument is seen; ``why_lost``: why the part was dropped.
     """
@@ -96,8 +94,6 @@ class Diagnostics:
     region_lines: int | None = None
     agreement: float | None = None
     region_ms: float | None = None
-    box_d2: float | None = None
-    manoeuvre: bool | None = None
     source: str | None = None
     occluded: int | None = None
     why_lost: str | None = None

@@ -30,8 +30,7 @@ import numpy as np
 import trimesh
 
 from surftrack.eval import diameter_bbox_diagonal
-from surftrack.geometry import Box, project_points, project_pose_jacobian, se3, transform_points
-from surftrack.geometry.transforms import so3_exp
+from surftrack.geometry import Box, project_points, se3, transform_points
 from surftrack.instruments import BUILTIN, HALF_TURN, Instrument, InstrumentRegistry, JointState, joints_from_poses
 from surftrack.pose import PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_instrument, instrument_parts
@@ -39,7 +38,7 @@ from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
 from surftrack.track.instrument import InstrumentKalman, PartFilter
-from surftrack.track.kalman import FilterStep, PoseKalman, gate_limit
+from surftrack.track.kalman import FilterStep, PoseKalman
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
 from surftrack.track.status import POSED, Diagnostics, Status
 from surftrack.track.trocar import Trocar
@@ -211,19 +210,6 @@ def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndar
     return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
 
 
-def projected_box_centre(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Centre (2,) px of the box of ``vertices`` (N, 3, mm) projected at (R, t), as :func:`projected_box`
-    draws it (pixel edges), and its derivative (2, 6) with respect to a pose step (dt mm in the camera,
-    dtheta rad of body rotation: :func:`~surftrack.geometry.project_pose_jacobian`): through the extreme
-    vertices along each image axis, which the centre follows while they stay the extremes."""
-    uv, J = project_pose_jacobian(K, R, t, vertices)
-    ix0, ix1 = int(np.argmin(uv[:, 0])), int(np.argmax(uv[:, 0]))
-    iy0, iy1 = int(np.argmin(uv[:, 1])), int(np.argmax(uv[:, 1]))
-    centre = np.array([0.5 * (uv[ix0, 0] + uv[ix1, 0]), 0.5 * (uv[iy0, 1] + uv[iy1, 1])]) + 0.5
-    return centre, np.stack([0.5 * (J[ix0, 0] + J[ix1, 0]), 0.5 * (J[iy0, 1] + J[iy1, 1])])
-
-
 def estimator_cov(t: np.ndarray, cfg: TrackConfig) -> np.ndarray:
     """The estimator's pose covariance (6x6: mm^2 for the position, rad^2 for the body rotation) for a
     part estimated at ``t`` (3,) mm in the camera: ``est_pos_std_mm`` along the line of sight through
@@ -253,8 +239,6 @@ class _Track:
         self.since_refresh = 0
         self.since_meas = 0
         self.seeded = False
-        self.box_measured = False  # its detection box's centre was fused on the last frame
-        self.box_until = -math.inf  # its boxes are fused until this time (s): it is manoeuvring
         self.unseen = 0  # estimator runs in a row that saw nothing of a tracked part
         self.occluded = 0  # frames held (predicted) while unseen and the rest of its instrument was measured
         self.nis = 1.0  # running mean of the measurements' normalised innovation (d2 / dof; 1 when consistent)
@@ -435,7 +419,7 @@ class Tracker:
         """Advance to the frame ``frame_rgb`` (H, W, 3 uint8, undistorted) at ``time_s`` seconds;
         ``boxes`` maps track id -> [(box, score), ...] detected in this frame (missing = none)."""
         gray = cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY)
-        self._propagate(gray, time_s, boxes or {})
+        self._propagate(gray, time_s)
         if self.cfg.region:
             self._measure_regions(frame_rgb)
         requests, out_boxes = self._schedule(boxes or {})
@@ -467,10 +451,8 @@ class Tracker:
         return states
 
     # ------------------------------------------------------------------ the phases of a step
-    def _propagate(self, gray: np.ndarray, time_s: float,
-                   boxes: Mapping[int, Sequence[tuple[Box, float]]]) -> None:
-        """Predict every tracked part to ``time_s`` and measure it by its detection box's centre
-        (:meth:`_measure_box`); between keyframes, by flow (LK + PnP)."""
+    def _propagate(self, gray: np.ndarray, time_s: float) -> None:
+        """Predict every tracked part to ``time_s``; between keyframes, measure it by flow (LK + PnP)."""
         cfg, K = self.cfg, self.K
         # LK runs once for the points of all parts (one image pyramid per frame), its time shared out by
         # point count. A part the estimator measures this frame anyway (its cadence is due) gets no flow
@@ -498,17 +480,12 @@ class Tracker:
             if not tr.has_pose:
                 continue
             t_flow = time.perf_counter()
-            dt = time_s - tr.kf.time
-            # a part whose box was fused on the last frame is moving where the box says, not coasting
-            tr.kf.predict(time_s, coast=tr.since_meas > 0 and not tr.box_measured)
-            tr.box_measured = False
+            tr.kf.predict(time_s, coast=tr.since_meas > 0)
             if tr.seeded:  # set_pose just before this frame: the pose stands, flow starts here
                 tr.seeded = False
                 tr.kf.prior = None  # a new segment: the smoother does not link it to the old track
                 tr.info.source = "set_pose"
                 continue
-            if self.cfg.box_centre:
-                self._measure_box(tr, boxes.get(tr.spec.track_id, ()), time_s, dt)
             tr.since_keyframe += 1
             tr.since_refresh += 1
             meas = None
@@ -532,58 +509,6 @@ class Tracker:
             else:
                 tr.status, tr.since_meas = Status.PREDICTED, tr.since_meas + 1
             tr.info.flow_ms = 1e3 * (time.perf_counter() - t_flow) + lk_ms.get(id(tr), 0.0)
-
-    def _measure_box(self, tr: _Track, boxes: Sequence[tuple[Box, float]], time_s: float, dt: float) -> None:
-        """Fuse the centre of ``tr``'s detection box (TrackConfig ``box_centre``) at ``time_s``, right after
-        its prediction over ``dt`` s, while it is manoeuvring; widen that prediction first when the box says
-        the part is manoeuvring."""
-        cfg = self.cfg
-        R, t = tr.kf.pose
-        pbox, inside = projected_box(self.K, R, t, tr.box_vertices, self.size)
-        det = self._pick_box(tr, boxes, pbox)
-        if det is None or pbox is None or inside < 0.99:
-            return
-        W, H = self.size
-        if det[0] < 1.0 or det[1] < 1.0 or det[0] + det[2] > W - 1.0 or det[1] + det[3] > H - 1.0:
-            return  # cut by the image's edge: its centre is not the part's
-        r = cfg.box_size_ratio
-        if not (1.0 / r <= det[2] / pbox[2] <= r and 1.0 / r <= det[3] / pbox[3] <= r):
-            return  # partly hidden (or the track is off in depth): the box's centre is not the part's
-        centre, J = projected_box_centre(self.K, R, t, tr.box_vertices)
-        resid = np.array([det[0] + 0.5 * det[2], det[1] + 0.5 * det[3]]) - centre
-        std = cfg.box_centre_std * np.array([det[2], det[3]]) + cfg.box_centre_floor_px
-        # A measurement of the position: the box's centre moves with the rotation too (the part's origin
-        # is not its middle), but a box barely sees the rotation, and letting it explain a shift turned
-        # the part until its box no longer matched. The rotation's uncertainty enters as noise instead.
-        Jt = np.hstack([J[:, :3], np.zeros((2, 3))])
-        rot_cov = tr.kf.pose_cov[3:, 3:]
-        cov = np.diag(std**2) + J[:, 3:] @ rot_cov @ J[:, 3:].T
-        # the position step of least norm that moves the projected centre onto the detection's: what the
-        # measurement claims, in the two directions it sees and nothing else
-        step = Jt.T @ np.linalg.solve(Jt @ Jt.T, resid)
-        R_meas, t_meas = R, t + step[:3]
-
-        def d2() -> float:
-            S = Jt @ tr.kf.pose_cov @ Jt.T + cov
-            return float(resid @ np.linalg.solve(S, resid))
-
-        # Boxes are fused from a box the prediction cannot explain until box_manoeuvre_s after the last
-        # one: at rest the silhouette and the keyframes place the part better (the detector's jitter fused
-        # on every frame lengthened the paths), while a move, once caught, is followed by its boxes (a
-        # single one turns the whole correction into a velocity that runs on).
-        if d2() > gate_limit(cfg.kalman, 2):
-            tr.box_until = time_s + cfg.box_manoeuvre_s
-            if isinstance(tr.kf, PoseKalman) and dt > 0 and cfg.box_manoeuvre_accel_mm_s2 > 0:
-                ray = t / np.linalg.norm(t)  # a box sees the move across the line of sight, not along it
-                tr.kf.add_process_noise(cfg.box_manoeuvre_accel_mm_s2**2 * (np.eye(3) - np.outer(ray, ray)), dt)
-                tr.info.manoeuvre = True
-        elif time_s > tr.box_until:
-            return
-        rejections = tr.kf.rejections_in_a_row  # what counts towards a restart is the estimator's disagreement
-        if tr.kf.update(R_meas, t_meas, cov, basis=Jt):
-            tr.info.box_d2 = tr.kf.last_d2
-            tr.box_measured = True
-        tr.kf.rejections_in_a_row = rejections
 
     def _measure_regions(self, frame_rgb: np.ndarray) -> None:
         """Between keyframes, measure every predicted part against the frame's colours along its
