@@ -181,6 +181,26 @@ def test_lost_after_max_rejections_and_reinit():
     assert not kf.lost and kf.rejections_in_a_row == 0
 
 
+def test_only_counted_measurements_make_a_track_lost():
+    """What counts towards ``lost`` is the estimator's disagreement: a gated-out measurement passed with
+    ``counts=False`` (a silhouette fit, flow) neither adds a rejection nor, accepted, clears one."""
+    kf = PoseKalman(KalmanConfig(max_rejections=3))
+    kf.init(np.eye(3), np.zeros(3), 0.0)
+    far, near = np.array([100.0, 0, 0]), np.array([0.1, 0, 0])
+    kf.predict(0.033)
+    assert kf.update(np.eye(3), far) is False and kf.rejections_in_a_row == 1
+    for i in range(2, 6):
+        kf.predict(0.033 * i)
+        assert kf.update(np.eye(3), far, counts=False) is False
+    assert kf.rejections_in_a_row == 1 and not kf.lost
+    kf.predict(0.2)
+    assert kf.update(np.eye(3), near, counts=False) is True and kf.rejections_in_a_row == 1
+    for i in range(2):
+        kf.predict(0.25 + 0.033 * i)
+        kf.update(np.eye(3), far)
+    assert kf.lost
+
+
 def test_init_is_never_gated():
     kf = PoseKalman()
     kf.init(np.eye(3), np.zeros(3), 0.0)

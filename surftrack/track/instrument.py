@@ -462,14 +462,16 @@ class PartFilter:
         self.shared.predict(time)  # the instrument's state: its other parts may well be measured
 
     def update(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray | None = None,
-               gate: bool = True, basis: np.ndarray | None = None) -> bool:
+               gate: bool = True, basis: np.ndarray | None = None, counts: bool = True) -> bool:
+        """As :meth:`PoseKalman.update`, through the instrument's state."""
         cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
         if not (np.isfinite(R_meas).all() and np.isfinite(t_meas).all() and np.isfinite(cov).all()):
-            self.rejections_in_a_row += 1
+            self.rejections_in_a_row += counts
             self.last_d2 = math.inf
             return False
         ok, self.last_d2 = self.shared.update_part(self.name, R_meas, t_meas, cov, gate, basis)
-        self.rejections_in_a_row = 0 if ok else self.rejections_in_a_row + 1
+        if counts:
+            self.rejections_in_a_row = 0 if ok else self.rejections_in_a_row + 1
         return ok
 
     def restart(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray, widen: np.ndarray) -> None:

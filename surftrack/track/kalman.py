@@ -25,8 +25,9 @@ Conventions
   corrections seen in tracking this is within a hair of the identity approximation).
 * Gating: ``d2 = y^T S^-1 y`` with ``S = H P H^T + R`` evaluated BEFORE the update (filterpy's
   ``mahalanobis`` is computed after the update and is not used). ``d2 > gate_chi2`` (chi2(6) 99.9 % =
-  22.46) rejects the measurement; ``rejections_in_a_row`` counts consecutive rejections so the caller can
-  re-initialise from the estimator (``lost`` once it reaches ``max_rejections``). ``init`` is never gated.
+  22.46) rejects the measurement; ``rejections_in_a_row`` counts consecutive rejections of counted
+  measurements so the caller can re-initialise from the estimator (``lost`` once it reaches
+  ``max_rejections``). ``init`` is never gated.
 
 Time comes from real timestamps in seconds (variable frame rate); ``predict`` raises on ``dt <= 0``.
 
@@ -74,9 +75,10 @@ class KalmanConfig:
       estimator's: TrackConfig ``est_*_std``; the silhouette's and flow's from their fits).
     * ``init_vel_std_mm_s = 100``, ``init_omega_std_rad_s = 2``: uncertainty of the unknown initial
       velocities.
-    * ``gate_chi2 = 22.46``: chi2 with 6 dof at 99.9 %; ``max_rejections = 8`` consecutive rejections mark
-      the track as lost (re-initialise from the estimator): the estimator's single outliers (a flipped jaw,
-      the shaft's roll) come in short runs, a real fast move persists.
+    * ``gate_chi2 = 22.46``: chi2 with 6 dof at 99.9 %; ``max_rejections = 8`` consecutive rejections of
+      counted measurements (the estimator's, ``update(counts=True)``) mark the track as lost (re-initialise
+      from the estimator): the estimator's single outliers (a flipped jaw, the shaft's roll) come in short
+      runs, a real fast move persists.
     * ``coast_tau_s = 0.1``: while a part goes unmeasured (every estimate gated out, no silhouette fit),
       its velocities decay with this time constant instead of carrying it on: a track that has started to
       drift (a jaw turning away at 7-8 deg a frame while its estimates are rejected) would otherwise go on
@@ -395,18 +397,20 @@ class PoseKalman:
         return float(y @ np.linalg.solve(S, y))
 
     def update(self, R_meas: np.ndarray, t_meas: np.ndarray, meas_cov: np.ndarray | None = None,
-               gate: bool = True, basis: np.ndarray | None = None) -> bool:
+               gate: bool = True, basis: np.ndarray | None = None, counts: bool = True) -> bool:
         """Fuse a pose measurement at the current filter time. Returns False (state untouched) when gated.
 
         ``basis`` (m x 6): fuse only these m combinations of the pose (position mm, body rotation rad),
         ``meas_cov`` then being their m x m covariance: a measurement that sees some directions of the
         pose and not others (a silhouette: the lateral position, hardly the depth) claims nothing about
-        the rest. The gate ``gate_chi2`` is then scaled by chi2(m) / chi2(6), both at 99.9 %."""
+        the rest. The gate ``gate_chi2`` is then scaled by chi2(m) / chi2(6), both at 99.9 %. ``counts``:
+        whether its outcome counts towards ``rejections_in_a_row`` (``lost``): the pose estimator's do, a
+        silhouette fit's or flow's (the track's own evidence, which fails where the image does) do not."""
         if basis is not None and meas_cov is None:
             raise ValueError("a measurement of some pose directions (basis) needs their covariance")
         meas_cov = self.config.meas_cov() if meas_cov is None else np.asarray(meas_cov, np.float64)
         if not (np.isfinite(R_meas).all() and np.isfinite(t_meas).all() and np.isfinite(meas_cov).all()):
-            self.rejections_in_a_row += 1  # a non-finite measurement is never fused, gated or not
+            self.rejections_in_a_row += counts  # a non-finite measurement is never fused, gated or not
             self.last_d2 = math.inf
             return False
         z, y, S, H = self._innovation(R_meas, t_meas, meas_cov, basis)
@@ -414,12 +418,13 @@ class PoseKalman:
         self.last_d2 = d2
         limit = self.config.gate_chi2 if basis is None else gate_limit(self.config, len(z))
         if not math.isfinite(d2) or (gate and d2 > limit):
-            self.rejections_in_a_row += 1
+            self.rejections_in_a_row += counts
             return False
         self.kf.update(z.reshape(-1, 1), R=meas_cov, H=H)
         self.R_ref, x, self.kf.P = inject_rotation(self.R_ref, self.kf.x.reshape(12), self.kf.P)
         self.kf.x = x.reshape(12, 1)
-        self.rejections_in_a_row = 0
+        if counts:
+            self.rejections_in_a_row = 0
         return True
 
     def step(self, time: float, R_meas: np.ndarray | None, t_meas: np.ndarray | None,

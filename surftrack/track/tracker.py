@@ -502,7 +502,7 @@ class Tracker:
                     # the points' 3D positions came from the pose at lifting time, errors included: a
                     # measurement claiming only its PnP precision would lock the filter onto that error and
                     # keyframes could hardly pull it back
-                    accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor + tr.lift_cov)
+                    accepted = tr.kf.update(meas.R, meas.t, meas.cov + self._floor + tr.lift_cov, counts=False)
                     tr.note_d2(tr.kf.last_d2, 6, self.cfg.confidence_nis_weight, accepted)
             if accepted:
                 tr.status, tr.since_meas = Status.TRACKING, 0
@@ -550,7 +550,8 @@ class Tracker:
                 tr.info.region_lines, tr.info.agreement = int(res.lines), float(res.agreement)
                 basis, cov = res.observed(cfg.region_max_std_mm, cfg.region_max_std_deg)
                 if (res.agreement >= cfg.region_min_agreement and len(basis)
-                        and tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis)):
+                        and tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis,
+                                         counts=False)):
                     tr.status, tr.since_meas = Status.TRACKING, 0
                     tr.note_d2(tr.kf.last_d2, len(basis), cfg.confidence_nis_weight)
                     accepted.add(tr.spec.name)
