@@ -154,12 +154,11 @@ def _frames_to_read(info, end: float | None) -> int | None:
 
 
 def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Path, opts: AnnotateOptions,
-                   size: tuple[int, int], specs: list[PartSpec]) -> None:
-    """Refuse, before any file is opened, outputs that would overwrite an input or one another, output
-    files of the wrong kind or where no file can be written, and overlay or TUM settings their writers
+                   size: tuple[int, int]) -> None:
+    """Refuse, before the model loads and any file is opened, outputs that would overwrite an input or one
+    another, output files of the wrong kind or where no file can be written, and an overlay its writer
     would only refuse after the MCAP had been started."""
     from surftrack.io.overlay import check_overlay_video
-    from surftrack.io.tum import tum_filename
 
     taken = {Path(p).resolve(): what for what, p in (("the input video", video), ("the boxes", boxes),
                                                      ("the camera file", camera), ("the model", model))}
@@ -175,23 +174,32 @@ def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Pat
         if suffix is not None and p.suffix.lower() != suffix:
             raise InputError(f"{p}: {what} must be a {suffix} file")
         _output_folder(p, what)
-    if opts.export_tum is not None and Path(opts.export_tum).exists() and not Path(opts.export_tum).is_dir():
-        raise InputError(f"{opts.export_tum}: --export-tum names a file; give a folder")
+    if opts.export_tum is not None:
+        tum = Path(opts.export_tum)
+        if tum.resolve() in taken:
+            raise InputError(f"{tum}: --export-tum would overwrite {taken[tum.resolve()]}")
+        if tum.exists() and not tum.is_dir():
+            raise InputError(f"{tum}: --export-tum names a file; give a folder")
     if opts.overlay is not None:
         try:
             check_overlay_video(opts.overlay, *size)
         except ValueError as e:
             raise InputError(f"--overlay: {e}") from None
-    if opts.export_tum is not None:
-        files: dict[str, str] = {}
-        for s in specs:
-            try:
-                f = tum_filename(s.name)
-            except ValueError as e:
-                raise InputError(f"{boxes}: {e}") from None
-            if f in files:
-                raise InputError(f"{boxes}: parts {files[f]!r} and {s.name!r} would share the TUM file {f}")
-            files[f] = s.name
+
+
+def _check_tum_names(boxes: Path, specs: list[PartSpec]) -> None:
+    """Refuse parts whose TUM files (``--export-tum``) would be unnamable or share a name."""
+    from surftrack.io.tum import tum_filename
+
+    files: dict[str, str] = {}
+    for s in specs:
+        try:
+            f = tum_filename(s.name)
+        except ValueError as e:
+            raise InputError(f"{boxes}: {e}") from None
+        if f in files:
+            raise InputError(f"{boxes}: parts {files[f]!r} and {s.name!r} would share the TUM file {f}")
+        files[f] = s.name
 
 
 def _output_folder(path: Path, what: str) -> None:
@@ -252,10 +260,12 @@ def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple 
     model_path = Path(opts.model) if opts.model is not None else default_model_path()
     if not model_path.is_file():
         raise InputError(f"{model_path}: no such model file (pass --model, or train one with `surftrack train`)")
+    out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
+    _check_outputs(video, boxes, Path(camera), model_path, out, opts, size)
     model, train_cfg = checkpoint or load_checkpoint(model_path, opts.device or "cpu")[:2]
     specs, notes = match_parts(doc, model, str(boxes), opts.instruments)
-    out = Path(opts.out) if opts.out is not None else video.with_suffix(".mcap")
-    _check_outputs(video, boxes, Path(camera), model_path, out, opts, size, specs)
+    if opts.export_tum is not None:
+        _check_tum_names(boxes, specs)
     estimator = PoseEstimator(model, opts.config.estimator_preset(), device=opts.device,
                               crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale,
                               instruments=opts.instruments)

@@ -159,6 +159,8 @@ def _track(job: BatchJob, opts: AnnotateOptions, stop_file: Path) -> dict:
     except KeyboardInterrupt as e:  # the batch was stopped: annotate_video has finalised the outputs
         row.update(status="stopped", frames=getattr(e, "frames_done", 0), error="stopped before the end")
     row["seconds"] = round(time.perf_counter() - t0, 3)
+    if row["status"] != "failed":  # annotate_video finalised its MCAP
+        row["mcap"] = str(job.out)
     return row
 
 
@@ -196,10 +198,13 @@ def _stop_if(stop_file: Path) -> None:
         raise KeyboardInterrupt
 
 
-def _row(job: BatchJob, status: str, error: str) -> dict:
-    """A manifest row of ``job`` that tracked nothing (yet)."""
-    return {"video": str(job.video), "mcap": str(job.out), "status": status, "frames": 0, "seconds": 0.0,
-            "fps": 0.0, "error": error}
+def _row(job: BatchJob, status: str, error: str, earlier: dict | None = None) -> dict:
+    """A manifest row of ``job`` that tracked nothing in this run: its MCAP and figures are ``earlier``'s,
+    the row of the run that finished it, if given (else none)."""
+    earlier = earlier or {}
+    return {"video": str(job.video), "mcap": earlier.get("mcap"), "status": status,
+            "frames": earlier.get("frames", 0), "seconds": earlier.get("seconds", 0.0),
+            "fps": earlier.get("fps", 0.0), "error": error}
 
 
 def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions | None = None, *,
@@ -236,7 +241,7 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
     todo = []
     for job in jobs:
         if not force and _finished_before(job, previous):
-            record(_row(job, "skipped", "finished by an earlier run"))
+            record(_row(job, "skipped", "finished by an earlier run", previous[str(job.video)]))
         elif (problem := check_job(job)) is not None:
             record(_row(job, "failed", problem))
         else:

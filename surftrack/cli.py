@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import signal
 import sys
@@ -376,6 +377,10 @@ def _track_config(args: argparse.Namespace) -> TrackConfig:
     from surftrack.track import load_track_config
 
     cfg = load_track_config(args.config)
+    for flag in ("start", "end"):  # checked before a folder of videos meets it on every one
+        v = getattr(args, flag, None)
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise CLIError(f"--{flag} {v:g}: give seconds of video from its start (>= 0)")
     if args.keyframe_every is not None:
         if args.keyframe_every < 1:
             raise CLIError(f"--keyframe-every must be >= 1, got {args.keyframe_every}")
@@ -475,12 +480,11 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     from surftrack.io.analyze import analyze_mcap, format_analysis, plot_analysis
 
     png = Path(args.png) if args.png else Path(args.mcap).with_suffix(".analysis.png")
-    if png.suffix.lower() not in (".png", ".jpg", ".jpeg", ".pdf", ".svg"):
-        raise CLIError(f"--png {png}: give a .png, .jpg, .pdf or .svg file")
-    if png.resolve() == Path(args.mcap).resolve():
-        raise CLIError(f"--png {png}: would overwrite the MCAP it analyses")
-    if not png.parent.is_dir():
-        raise CLIError(f"--png {png}: no folder {png.parent}")
+    if args.png:  # the default sits beside the MCAP, whose own problems analyze_mcap names
+        if png.suffix.lower() not in (".png", ".jpg", ".jpeg", ".pdf", ".svg"):
+            raise CLIError(f"--png {png}: give a .png, .jpg, .jpeg, .pdf or .svg file")
+        if not png.parent.is_dir():
+            raise CLIError(f"--png {png}: no folder {png.parent}")
     try:
         s = analyze_mcap(args.mcap, min_confidence=args.min_confidence)
     except ValueError as e:

@@ -30,7 +30,7 @@ def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, c
     assert "surftrack batch: 2 of 3 videos finished" in printed
     rows = {json.loads(line)["video"]: json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()}
     assert rows[str(videos / "a_bad.mp4")]["status"] == "failed"
-    assert "a_bad.mp4" in rows[str(videos / "a_bad.mp4")]["error"]
+    assert "a_bad.mp4" in rows[str(videos / "a_bad.mp4")]["error"] and rows[str(videos / "a_bad.mp4")]["mcap"] is None
     for stem in ("b_good", "c_good"):
         r = rows[str(videos / f"{stem}.mp4")]
         assert r["status"] == "done" and r["frames"] == 15 and r["fps"] > 0
@@ -42,6 +42,10 @@ def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, c
     assert main(args) == EXIT_BATCH_INCOMPLETE  # the bad video is still bad; the good ones are not redone
     lines = (out / "manifest.jsonl").read_text().splitlines()[3:]
     assert sorted(json.loads(line)["status"] for line in lines) == ["failed", "skipped", "skipped"]
+    for line in lines:  # a skipped video keeps the figures of the run that finished it
+        r = json.loads(line)
+        if r["status"] == "skipped":
+            assert r["frames"] == 15 and r["mcap"] == rows[r["video"]]["mcap"]
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.mcap")} == stamps
 
     # the main command on a folder is the same batch (every video redone, like the main command on one)

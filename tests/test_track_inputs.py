@@ -144,6 +144,8 @@ def test_unwritable_output_and_bad_options(clip, tiny_ckpt, tmp_path, capsys):
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--joints-csv", str(tmp_path / "j.txt")], "j.txt", ".csv")
     (tmp_path / "tum_file").write_text("")
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--export-tum", str(tmp_path / "tum_file")], "tum_file")
+    _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--export-tum", str(tmp_path / "out.mcap")],
+           "--export-tum would overwrite the MCAP")
     assert not (tmp_path / "out.mcap").exists()  # every output checked before the MCAP is opened
     _check(capsys, _base(clip, tiny_ckpt, tmp_path) + ["--config", "no_such_config"], "no_such_config",
            "every_frame")
