@@ -175,8 +175,13 @@ def test_part_filters_share_the_state_and_restart_it():
     assert kf.time == pytest.approx(1 / FPS)
     # a far-off measurement is gated per part; the part's own count locks it out, not the others
     R, t = truth[1][0][NAMES["shaft"]]
-    for _ in range(kf.config.max_rejections):
+    for _ in range(kf.config.max_rejections - 1):
         assert not views["shaft"].update(R, t + 40.0, MEAS)
+    # a silhouette's or flow's outcome (counts=False) neither adds to the count nor clears it
+    assert not views["shaft"].update(R, t + 40.0, MEAS, counts=False) and not views["shaft"].lost
+    assert views["shaft"].update(R, t, MEAS, counts=False)
+    assert views["shaft"].rejections_in_a_row == kf.config.max_rejections - 1
+    assert not views["shaft"].update(R, t + 40.0, MEAS)
     assert views["shaft"].lost and not views["wrist"].lost
     # the root's restart moves the instrument there
     widen = np.diag([50.0 ** 2] * 3 + [0.5] * 3)

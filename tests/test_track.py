@@ -925,7 +925,7 @@ def test_a_restarted_track_s_jump_is_no_motion_in_the_score(clip, lnd_parts):
              for k, (p, tid) in enumerate(sorted(lnd_parts.items()))]
     n = len(_frames(clip))
     seen = [i for i in range(n) if gt.pose(i, lnd_parts["jaw_left"])[2] >= 20]  # a small clip
-    k = seen[len(seen) // 2]
+    k = [i for i in seen if i - 1 in seen][len(seen) // 2 - 1]  # a step counts from a visible frame
 
     def score(restarted):
         s = TrackScore(gt, min_visible_px=20, instruments={lnd.name: lnd})
@@ -952,6 +952,32 @@ def test_a_restarted_track_s_jump_is_no_motion_in_the_score(clip, lnd_parts):
     assert 0 < jaw["path_right_share_pct"] < 100 and jaw_plain["excess_wrong_mm"] > 15.0
     from surftrack.track.clip_eval import format_path_causes
     assert f"| {lnd.name}.0.jaw_left | 1.00 |" in format_path_causes({f"{lnd.name}.0.jaw_left": jaw})
+
+
+def test_a_step_out_of_a_hidden_frame_is_not_motion_in_the_score(clip, lnd_parts):
+    """TrackScore counts a step only between visible frames: a track 10 mm off on every frame where the
+    part is hidden (too few pixels to score) adds nothing to its path, speed or jitter."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track import PartState
+
+    lnd = load_instrument("lnd")
+    gt = ClipGroundTruth(clip / "gt.json")
+    tid = lnd_parts["jaw_left"]
+    mesh = lnd.parts["jaw_left"].mesh
+    spec = PartSpec(tid, 1, lnd.name, 0, "jaw_left", mesh.vertices, mesh.faces)
+    n = len(_frames(clip))
+    px = [gt.pose(i, tid)[2] for i in range(n)]
+    cut = float(np.median([p for p in px if p > 0]))  # about half the frames with the part count as hidden
+    s = TrackScore(gt, min_visible_px=int(cut))
+    hidden = 0
+    for i in range(n):
+        R, t, vis = gt.pose(i, tid)
+        if vis < int(cut):
+            t, hidden = t + [10.0, 0.0, 0.0], hidden + 1
+        s.add_frame(i, i / 10.0, [PartState(spec, "tracking", 1.0, R, t, None)])
+    row = s.summary()[f"{lnd.name}.0.jaw_left"]
+    assert hidden >= 3 and row["path_gt_mm"] > 0
+    assert row["path_ratio"] == pytest.approx(1.0) and abs(row["jitter_mm"]) < 1e-9
 
 
 def test_the_keyframe_bound_in_seconds_becomes_frames_of_the_video():

@@ -4,7 +4,7 @@
 streams (feed it from ``annotate_video(on_frame=...)``) and reports RE, TE, ADD, ADD-10 (with the
 SurgRIPE diameter: the model's bounding-box diagonal, the convention of the paper's tables), the share
 of frames with a pose while the part is visible, and jitter: the mean frame-to-frame pose change minus
-the ground truth's (mm, deg), over consecutive frames that both have a pose and one track (below).
+the ground truth's (mm, deg), over consecutive visible frames that both have a pose and one track (below).
 
 Kinematics: path length (sum of the frame-to-frame translation of the part's origin) estimated and true
 over the same pairs of consecutive visible frames with a pose, the second continuing the first's track

@@ -249,8 +249,9 @@ class TrackConfig:
         of video where that is tighter (at least 1 frame)."""
         if self.keyframe_max_s <= 0 or not (fps and math.isfinite(fps) and fps > 0):
             return self
-        # floor (with a hair for 0.34 s x 30 fps = 10.2): the bound in seconds is a bound, not a target
-        return self.replace(keyframe_every=min(self.keyframe_every, max(1, math.floor(self.keyframe_max_s * fps + 1e-9))))
+        # floor: the bound in seconds is a bound, not a target (the hair keeps 0.7 s x 90 fps at 63)
+        frames = math.floor(self.keyframe_max_s * fps + 1e-9)
+        return self.replace(keyframe_every=min(self.keyframe_every, max(1, frames)))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -61,7 +61,7 @@ class Diagnostics:
     status messages carry the set ones, :meth:`as_dict`).
 
     Estimator (a keyframe): ``estimator`` why it ran (``init``, ``reappearance``, ``cadence``, ``box
-    disagreement``, ``instrument keyframe``, ``gate lockout``, ``no measurement``), ``estimator_ms`` this
+    disagreement``, ``instrument keyframe``, ``no measurement``), ``estimator_ms`` this
     part's share of the call, ``score`` and ``est_inliers`` its pose's, ``prior_won`` whether the tracked
     pose beat the estimator's hypotheses, ``kinematic`` whether the pose is the instrument fit's,
     ``restarted`` whether the track was restarted at the estimate (``kalman.max_rejections`` estimates in a

@@ -1,10 +1,11 @@
-"""Per-part tracking state machine: the estimator initialises and recovers, flow + Kalman filter propagate.
+"""Per-part tracking state machine: the estimator initialises and recovers, silhouettes (or flow) and a
+Kalman filter carry the parts between keyframes.
 
 Every part has a :class:`~.status.Status` on every frame.
 
 The estimator runs for a part when it has a box and no track, and for a tracked part on the keyframe
-cadence, after ``max_predicted`` frames without a measurement, when the filter's gate locks out
-(``PoseKalman.lost``) or when a detection box disagrees with the part's projected box. A tracked part
+cadence, after ``max_predicted`` frames without a measurement or when a detection box disagrees with
+the part's projected box. A tracked part
 hands its pose to the estimator as a prior, so a keyframe never replaces a pose that explains the image
 better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
 appearance is enough. All parts needing the estimator in a frame share one batched call, and the poses
@@ -752,8 +753,6 @@ class Tracker:
                 why = None
                 if det is not None and box_iou(det, pbox) < cfg.min_iou:
                     why = "box disagreement"
-                elif tr.kf.lost:
-                    why = "gate lockout"
                 elif (cfg.flow or cfg.region) and tr.since_meas >= cfg.max_predicted:
                     why = "no measurement"
                 elif tr.since_keyframe >= cfg.keyframe_every:
@@ -824,8 +823,10 @@ class Tracker:
             if tr.has_pose and good:
                 if res.prior_won and not self._moved(res, prior):
                     # the tracked pose explains the image best: a confirmation, not a new measurement
-                    # (fusing the filter's own pose again would shrink its covariance for nothing)
+                    # (fusing the filter's own pose again would shrink its covariance for nothing), and
+                    # the end of a run of disagreements
                     tr.status, tr.since_meas = Status.KEYFRAME, 0
+                    tr.kf.rejections_in_a_row = 0
                 elif tr.kf.update(res.R, res.t, est_cov):
                     tr.status, tr.since_meas = Status.KEYFRAME, 0
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight)
