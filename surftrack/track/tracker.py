@@ -5,9 +5,8 @@ Every part has a :class:`~.status.Status` on every frame.
 
 The estimator runs for a part when it has a box and no track, and for a tracked part on the keyframe
 cadence, after ``max_predicted`` frames without a measurement or when a detection box disagrees with
-the part's projected box. A tracked part
-hands its pose to the estimator as a prior, so a keyframe never replaces a pose that explains the image
-better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
+the part's projected box. A tracked part hands its pose to the estimator as a prior, so a keyframe never
+replaces a pose that explains the image better. Boxes may be sparse: without a detection the part's own projected box is used, so one box per
 appearance is enough. All parts needing the estimator in a frame share one batched call, and the poses
 it returns for the parts of one instrument are made consistent with the instrument's kinematics
 (``TrackConfig.kinematic``; :mod:`surftrack.pose.kinematic`). An estimator pose is a measurement of the
