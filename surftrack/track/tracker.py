@@ -549,12 +549,14 @@ class Tracker:
                     continue
                 tr.info.region_lines, tr.info.agreement = int(res.lines), float(res.agreement)
                 basis, cov = res.observed(cfg.region_max_std_mm, cfg.region_max_std_deg)
-                if (res.agreement >= cfg.region_min_agreement and len(basis)
-                        and tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis,
-                                         counts=False)):
+                if res.agreement < cfg.region_min_agreement or not len(basis):
+                    continue
+                if tr.kf.update(res.R, res.t, cov + basis @ self._region_floor @ basis.T, basis=basis, counts=False):
                     tr.status, tr.since_meas = Status.TRACKING, 0
                     tr.note_d2(tr.kf.last_d2, len(basis), cfg.confidence_nis_weight)
                     accepted.add(tr.spec.name)
+                else:  # a silhouette the filter refuses says the track may be off: the confidence hears it
+                    tr.note_d2(tr.kf.last_d2, len(basis), cfg.confidence_nis_weight, accepted=False)
             for model, _ in models:  # the joints a fit found seed the next frame's, once its root was taken
                 if isinstance(model, ArticulatedModel) and model.solution is not None and model.parts[0] in accepted:
                     self._joints[key] = model.joint_state(model.solution)
