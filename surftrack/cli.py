@@ -517,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
     d.add_argument("--seconds", type=float, default=6.0, help="clip length (default: 6)")
     d.add_argument("--fps", type=float, default=15.0, help="clip frame rate (default: 15)")
-    d.add_argument("--seed", type=_seed, default=0)
+    d.add_argument("--seed", type=_seed, default=0, help="the clip's random seed (default: 0)")
     d.add_argument("--model", help="checkpoint (default: the bundled model)")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=_cmd_demo)
@@ -533,7 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--out", required=True, help="dataset folder (created; an existing one is resumed)")
     sy.add_argument("--instruments", help="comma-separated names, aliases or instrument YAML files (default: from the config)")
     sy.add_argument("--images", type=int, default=100, help="total number of images (default: 100)")
-    sy.add_argument("--seed", type=_seed, default=0)
+    sy.add_argument("--seed", type=_seed, default=0, help="the dataset's random seed (default: 0); images are "
+                    "a function of it and their index")
     sy.add_argument("--workers", type=int, default=1, help="worker processes, each with its own GL context")
     sy.add_argument("--config", help="synthesis YAML, or 'paper' for the paper's ranges (default: configs/synth/"
                                      "default.yaml, the instrument's whole reach)")
@@ -543,9 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--out", required=True, help="output folder")
     sc.add_argument("--instrument", default="lnd", help="the main instrument (default: lnd)")
     sc.add_argument("--second", help="the crossing instrument (default: cadiere_forceps; 'none' for a single tool)")
-    sc.add_argument("--seconds", type=float, default=10.0)
-    sc.add_argument("--fps", type=float, default=30.0)
-    sc.add_argument("--seed", type=_seed, default=0)
+    sc.add_argument("--seconds", type=float, default=10.0, help="clip length (default: 10)")
+    sc.add_argument("--fps", type=float, default=30.0, help="frame rate (default: 30)")
+    sc.add_argument("--seed", type=_seed, default=0, help="the clip's random seed (default: 0)")
     sc.add_argument("--roll-deg", type=float, nargs=2, metavar=("LO", "HI"),
                     help="the main tool's roll at the start, degrees about the jaws opening towards the camera "
                          "(default: -30 30; -180 180 for anywhere)")
