@@ -153,6 +153,16 @@ def _frames_to_read(info, end: float | None) -> int | None:
     return info.frames or None
 
 
+def check_span(start: float | None, end: float | None) -> None:
+    """:class:`InputError` unless ``start`` / ``end`` (s of video from its start, None = open) make a
+    stretch to track."""
+    for flag, v in (("--start", start), ("--end", end)):
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise InputError(f"{flag} {v:g}: give seconds of video from its start (>= 0)")
+    if start is not None and end is not None and end <= start:
+        raise InputError(f"--end {end} must be after --start {start}")
+
+
 def _check_outputs(video: Path, boxes: Path, camera: Path, model: Path, out: Path, opts: AnnotateOptions,
                    size: tuple[int, int]) -> None:
     """Refuse, before the model loads and any file is opened, outputs that would overwrite an input or one
@@ -249,11 +259,7 @@ def _prepare(video: Path, boxes: Path, opts: AnnotateOptions, checkpoint: tuple 
             raise InputError(f"{video}: no intrinsics: pass --camera camera.json (K, width, height), or put a "
                              f"camera.json beside the video")
     cam = load_camera(camera, size)
-    for flag, v in (("--start", opts.start), ("--end", opts.end)):
-        if v is not None and not (math.isfinite(v) and v >= 0):
-            raise InputError(f"{flag} {v:g}: give seconds of video from its start (>= 0)")
-    if opts.start is not None and opts.end is not None and opts.end <= opts.start:
-        raise InputError(f"--end {opts.end} must be after --start {opts.start}")
+    check_span(opts.start, opts.end)
     if opts.start is not None and info.duration_s and opts.start >= info.duration_s:
         raise InputError(f"{video}: --start {opts.start:g} s is past the end of the video "
                          f"({info.duration_s:.2f} s)")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import os
 import signal
 import sys
@@ -374,13 +373,11 @@ def _suite_clips_table(args: argparse.Namespace, clips, seeds: list[int], regist
 
 def _track_config(args: argparse.Namespace) -> TrackConfig:
     """The tracking config of ``track`` and ``batch``: ``--config`` with the command-line overrides."""
+    from surftrack.annotate import check_span
     from surftrack.track import load_track_config
 
     cfg = load_track_config(args.config)
-    for flag in ("start", "end"):  # checked before a folder of videos meets it on every one
-        v = getattr(args, flag, None)
-        if v is not None and not (math.isfinite(v) and v >= 0):
-            raise CLIError(f"--{flag} {v:g}: give seconds of video from its start (>= 0)")
+    check_span(getattr(args, "start", None), getattr(args, "end", None))  # before a folder meets it on every video
     if args.keyframe_every is not None:
         if args.keyframe_every < 1:
             raise CLIError(f"--keyframe-every must be >= 1, got {args.keyframe_every}")
