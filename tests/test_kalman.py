@@ -332,3 +332,28 @@ def test_coast_time_constant_is_checked():
     with pytest.raises(ValueError, match="coast_tau_s must be >= 0"):
         KalmanConfig(coast_tau_s=-0.1)
     assert KalmanConfig(coast_tau_s=0).coast_tau_s == 0.0
+
+
+def test_change_chart_follows_the_rotation_map():
+    """The re-expressed covariance is the original one through the numerical Jacobian of moving a rotation
+    error to the other chart, and leaving it unchanged would be measurably off ~27 deg apart."""
+    from surftrack.track.kalman import change_chart
+
+    rng = np.random.default_rng(5)
+    R_from = so3_exp(np.array([0.3, -1.2, 2.0]))
+    R_to = R_from @ so3_exp(np.array([0.35, 0.2, -0.3]))
+    x = np.zeros(12)
+    x[6:9] = [0.1, -0.05, 0.08]
+    A = rng.normal(size=(12, 12))
+    P = 1e-4 * (A @ A.T + np.eye(12))
+    x2, P2 = change_chart(R_from, x, P, R_to)
+    assert np.allclose(so3_exp(x2[6:9]), R_to.T @ R_from @ so3_exp(x[6:9]))
+    J, h = np.eye(12), 1e-6
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        moved = [so3_log(R_to.T @ R_from @ so3_exp(x[6:9] + s * e)) for s in (1, -1)]
+        J[6:9, 6 + i] = (moved[0] - moved[1]) / (2 * h)
+    want = J @ P @ J.T
+    assert np.allclose(P2, want, rtol=1e-6, atol=1e-12)
+    assert np.abs(P - want).max() > 0.05 * np.abs(want).max()

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from surftrack.geometry.transforms import skew, so3_exp, so3_log
+from surftrack.geometry.transforms import skew, so3_exp, so3_log, so3_right_jacobian
 
 CHI2_6DOF_999 = 22.46
 
@@ -176,6 +176,22 @@ def inject_rotation(R_ref: np.ndarray, x: np.ndarray, P: np.ndarray) -> tuple[np
     G[6:9, 6:9] = np.eye(3) - 0.5 * skew(dtheta)
     P = G @ P @ G.T
     return R_ref @ so3_exp(dtheta), x, 0.5 * (P + P.T)
+
+
+def change_chart(R_from: np.ndarray, x: np.ndarray, P: np.ndarray,
+                 R_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, P) of the error state ``x`` (12,), covariance ``P`` (12, 12), about nominal ``R_from`` (3, 3),
+    re-expressed about the nominal ``R_to``: the rotation error becomes ``log(R_to^T R_from exp(x_rot))``
+    and its covariance goes through the first-order Jacobian of that map, ``J_r(d)^-1 J_r(x_rot)`` (the
+    other components are the same in either chart)."""
+    x_rot = np.asarray(x, np.float64)[6:9]
+    d = so3_log(R_to.T @ R_from @ so3_exp(x_rot))
+    J = np.eye(len(x))
+    J[6:9, 6:9] = np.linalg.solve(so3_right_jacobian(d), so3_right_jacobian(x_rot))
+    x = np.array(x, np.float64)
+    x[6:9] = d
+    P = J @ P @ J.T
+    return x, 0.5 * (P + P.T)
 
 
 @dataclass(frozen=True)

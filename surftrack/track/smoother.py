@@ -3,8 +3,9 @@
 :func:`rts_smooth` is the Rauch-Tung-Striebel backward pass for :class:`~.kalman.PoseKalman`'s error-state
 filter. The rotation lives outside the filter's vector state (a nominal ``R`` per frame, the error a body
 rotation vector), so each backward step first re-expresses the smoothed state of frame k+1 in the chart
-of frame k+1's prediction (``dtheta = log(R_pred^T R_smooth)``), applies the linear RTS gain
-``C = P_f F^T P_pred^-1`` there and injects the rotation correction into frame k's nominal. With no
+of frame k+1's prediction (``dtheta = log(R_pred^T R_smooth)``, its covariance through that map's
+Jacobian), applies the linear RTS gain ``C = P_f F^T P_pred^-1`` there and injects the rotation
+correction into frame k's nominal with the filter's reset Jacobian (:func:`~.kalman.inject_rotation`). With no
 rotation this is exactly the linear RTS smoother; filterpy's ``KalmanFilter.rts_smoother`` is that linear
 one (one fixed chart for the whole run), so it cannot carry the per-frame rotation charts, and the
 tests check this pass against it and against a brute-force batch solution on a linear case.
@@ -22,8 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.geometry.transforms import so3_exp, so3_log
-from surftrack.track.kalman import FilterStep
+from surftrack.track.kalman import FilterStep, change_chart, inject_rotation
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -36,14 +36,12 @@ def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
         if cur is None or nxt is None or nxt.prior is None or s_nxt is None:
             continue
         pr = nxt.prior
-        d = s_nxt.x.copy()  # smoothed k+1 in the chart of its prediction:
-        d[6:9] = so3_log(pr.R.T @ s_nxt.R @ so3_exp(s_nxt.x[6:9]))
+        d, P_nxt = change_chart(s_nxt.R, s_nxt.x, s_nxt.P, pr.R)  # smoothed k+1 in its prediction's chart
         C = np.linalg.solve(pr.P.T, (cur.P @ pr.F.T).T).T  # P_f F^T P_pred^-1 (P_pred symmetric)
         x = cur.x + C @ (d - pr.x)
-        P = cur.P + C @ (s_nxt.P - pr.P) @ C.T
-        R = cur.R @ so3_exp(x[6:9])
-        x[6:9] = 0.0
-        out[k] = FilterStep(cur.time, R, x, 0.5 * (P + P.T), cur.prior)
+        P = cur.P + C @ (P_nxt - pr.P) @ C.T
+        R, x, P = inject_rotation(cur.R, x, P)
+        out[k] = FilterStep(cur.time, R, x, P, cur.prior)
     return out
 
 
