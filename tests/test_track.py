@@ -12,9 +12,10 @@ from mcap.reader import make_reader
 from surftrack.cli import main
 from surftrack.io.video import read_video_frames
 from surftrack.pose.preset import PRESETS
-from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, projected_box
+from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, filter_steps, projected_box
 from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
 from surftrack.track.flow import SurfaceSamples, pnp_measurement, pose_distance, track_points, visible_points
+from surftrack.track.smoother import LagSmoother
 
 
 def _frames(clip):
@@ -718,9 +719,12 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
     assert next(script, None) is None
 
 
-def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny_ckpt):
+@pytest.mark.parametrize("retro,flipped", [(True, False), (False, False), (True, True)])
+def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny_ckpt, retro, flipped):
     """One estimate outside the filter's gate is left out (as often an outlier as a move); after
-    ``kalman.max_rejections`` of them in a row the track restarts at the estimate, and says so."""
+    ``kalman.max_rejections`` of them in a row the track restarts at the estimate, and says so. Restarted
+    in hindsight (``retro_restart``), the smoothed track is the new one from the first refused estimate
+    that the restarting one continues (a flipped one before it is not), and starts there."""
     from surftrack.model import load_checkpoint
     from surftrack.pose.estimator import PartPose
 
@@ -732,31 +736,52 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
     R, t, _ = gt.pose(i, tid)
 
     class Still:
-        """A tool standing still, estimated at ``t + shift``."""
+        """A tool standing still, estimated at ``t + shift``, turned by ``turn``."""
 
         def __init__(self):
-            self.model, self.shift = model, np.zeros(3)
+            self.model, self.shift, self.turn = model, np.zeros(3), np.eye(3)
 
         def estimate(self, image, boxes, K, priors=None, groups=None):
-            return [PartPose(o, info.name, info.instrument, R, t + self.shift, 5.0, 200, True, {}, (0, 0, 1, 1),
-                             np.eye(3)) for o, _ in boxes]
+            return [PartPose(o, info.name, info.instrument, R @ self.turn, t + self.shift, 5.0, 200, True, {},
+                             (0, 0, 1, 1), np.eye(3)) for o, _ in boxes]
 
     est = Still()
     spec = PartSpec(tid, info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
     # a track sure of its place and motion, the estimator on every frame
     cfg = TrackConfig(region=False, flow=False, kinematic=False, keyframe_every=1, est_pos_std_mm=1.0,
                       est_lateral_std_mm=1.0, kalman=dataclasses.replace(TrackConfig().kalman, init_vel_std_mm_s=5.0,
-                                                                         max_rejections=2))
+                                                                         max_rejections=3), retro_restart=retro)
     tracker = Tracker(est, _K(clip), (320, 256), [spec], cfg)
     tracker.set_pose(tid, R, t, 0.0)
     for k in range(1, 4):
         assert tracker.step(frames[i], k / 10.0, None)[0].status == "keyframe"
     est.shift = np.array([20.0, 0.0, 0.0])
-    states = [tracker.step(frames[i], k / 10.0, None)[0] for k in (4, 5)]
-    assert [s.status for s in states] == ["predicted", "keyframe"]
-    assert [s.info.restarted for s in states] == [None, True]
+    moved = t + est.shift
+    states = []
+    for k in (4, 5, 6):
+        est.turn = np.diag([1.0, -1.0, -1.0]) if flipped and k == 4 else np.eye(3)  # half a turn
+        states.append(tracker.step(frames[i], k / 10.0, None)[0])
+    assert [s.status for s in states] == ["predicted", "predicted", "keyframe"]
+    assert [s.info.restarted for s in states] == [None, None, True]
     assert states[0].info.rejected_d2 > cfg.kalman.gate_chi2
-    assert np.linalg.norm(states[0].t - t) < 0.5 and np.linalg.norm(states[1].t - (t + est.shift)) < 0.5
+    assert np.linalg.norm(states[0].t - t) < 0.5 and np.linalg.norm(states[2].t - moved) < 0.5
+    revised = states[2].filter_step.revises
+    assert [r.time for r in revised] == ([0.5] if flipped else [0.4, 0.5] if retro else [])
+    states += [tracker.step(frames[i], k / 10.0, None)[0] for k in (7, 8)]
+    smoother, ready = LagSmoother(lag=3), []
+    for state in states:
+        ready += smoother.push(state, filter_steps([state]))
+    out = [state.settle(steps, cfg) for state, steps in ready + smoother.flush()]
+    assert len(out) == 5 and all(np.linalg.norm(o.t - moved) < 0.5 for o in out[2:])
+    start = 1 if flipped else 0
+    if retro:  # the new track starts at its first refused estimate, and the jump is there
+        assert all(np.linalg.norm(o.t - moved) < 0.5 for o in out[start:])
+        assert out[start].status == "keyframe" and out[start].info.restarted
+        assert not any(o.info.restarted for o in out[start + 1:2])
+    else:  # smoothing leaves the refused frames with the old track (the restart widened the prediction)
+        assert all(np.linalg.norm(o.t - t) < 2.0 and not o.info.restarted for o in out[:2])
+    if flipped:
+        assert np.linalg.norm(out[0].t - t) < 2.0 and not out[0].info.restarted
 
 
 def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(lnd_parts):

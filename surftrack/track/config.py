@@ -92,6 +92,10 @@ class TrackConfig:
     ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
+    ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
+    starts again from those refused estimates (as far back as they continue the last one), from the
+    first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
+    take the new one's poses once smoothed (a causal run only gains the better-founded restart).
 
     ``confidence_add``, ``confidence_scale``, ``confidence_nis_weight``: a written pose's confidence
     (:func:`~surftrack.track.tracker.confidence`) is the probability that its position error is within
@@ -169,6 +173,7 @@ class TrackConfig:
     init_min_inliers: int = 6
     init_min_score: float = 0.0
     smooth_lag_s: float = 1.0
+    retro_restart: bool = True
     confidence_add: float = 0.1
     confidence_scale: float = 1.5
     confidence_nis_weight: float = 0.3

@@ -43,6 +43,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,13 +211,16 @@ class FilterPrior:
 class FilterStep:
     """One frame of a part's filter: ``time`` (s), filtered nominal rotation ``R`` (3, 3), error state
     ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12); ``prior``:
-    the prediction into this frame, or None where a segment starts (first pose, re-initialisation)."""
+    the prediction into this frame, or None where a segment starts (first pose, re-initialisation).
+    ``revises``: the filtered steps of earlier frames, oldest first, that replace the ones this filter
+    gave them (a track restarted in hindsight, :func:`refilter`); the smoother swaps them in."""
 
     time: float
     R: np.ndarray
     x: np.ndarray
     P: np.ndarray
     prior: FilterPrior | None
+    revises: tuple[FilterStep, ...] = ()
 
     @property
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -232,6 +236,28 @@ class FilterStep:
 _H = np.zeros((6, 12))
 _H[0:3, 0:3] = np.eye(3)
 _H[3:6, 6:9] = np.eye(3)
+
+
+def refilter(config: KalmanConfig, frames: Sequence[tuple[float, tuple | None]],
+             last_ungated: bool = False) -> tuple[PoseKalman, list[FilterStep]]:
+    """A fresh filter run over ``frames``: per frame ``(time s, (R (3, 3), t (3,) mm, covariance 6x6) or
+    None)``, the first with a measurement (the filter starts there), then predicted frame to frame and
+    updated where measured (gated as usual, the last frame's ungated with ``last_ungated``; velocities
+    coast after an unmeasured frame). Returns the
+    filter at the last frame and its step on every frame. This is how a track found wrong is restarted
+    in hindsight: from the estimates it refused, as far back as they go."""
+    if not frames or frames[0][1] is None:
+        raise ValueError("refilter needs a measurement on its first frame")
+    kf = PoseKalman(config)
+    t0, (R0, p0, cov0) = frames[0]
+    kf.init(R0, p0, t0, cov0)
+    steps, measured = [kf.snapshot()], True
+    for k, (time, meas) in enumerate(frames[1:], 2):
+        kf.predict(time, coast=not measured)
+        measured = meas is not None and kf.update(meas[0], meas[1], meas[2],
+                                                  gate=not (last_ungated and k == len(frames)))
+        steps.append(kf.snapshot())
+    return kf, steps
 
 
 class PoseKalman:

@@ -13,7 +13,9 @@ tests check this pass against it and against a brute-force batch solution on a l
 :class:`LagSmoother` applies it to a stream of tracked frames with a fixed delay: frames wait in a buffer
 until ``lag`` newer frames exist, so each is smoothed with at least ``lag`` frames of future (for a
 constant-velocity model a second of future holds nearly all the information a full pass would use) while
-memory stays flat in the video's length. ``lag = 0`` passes frames through unchanged (causal).
+memory stays flat in the video's length. ``lag = 0`` passes frames through unchanged (causal). A step
+that ``revises`` earlier frames (a track restarted in hindsight) replaces their buffered steps before the
+next pass.
 """
 
 from __future__ import annotations
@@ -65,10 +67,22 @@ class LagSmoother:
         return len(self._buf)
 
     def push(self, item: Any, steps: dict[str, FilterStep | None]) -> list[tuple[Any, dict[str, FilterStep | None]]]:
+        for key, step in steps.items():
+            if step is not None and step.revises:
+                self._revise(key, step.revises)
         self._buf.append((item, dict(steps)))
         if len(self._buf) < self.lag + self.chunk:
             return []
         return self._release(len(self._buf) - self.lag)
+
+    def _revise(self, key: str, revised: Sequence[FilterStep]) -> None:
+        """Swap the buffered steps of ``key`` for the ``revised`` ones of the same frames (matched by
+        time); frames already released keep theirs."""
+        by_time = {r.time: r for r in revised}
+        for _, st in self._buf:
+            old = st.get(key)
+            if old is not None and old.time in by_time:
+                st[key] = by_time[old.time]
 
     def flush(self) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         return self._release(len(self._buf))

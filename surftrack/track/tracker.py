@@ -11,7 +11,9 @@ appearance is enough. All parts needing the estimator in a frame share one batch
 it returns for the parts of one instrument are made consistent with the instrument's kinematics
 (``TrackConfig.kinematic``; :mod:`surftrack.pose.kinematic`). An estimator pose is a measurement of the
 part's filter, gated like any other: a single disagreement is more often the estimator's outlier than a
-real jump and is left out; ``kalman.max_rejections`` in a row restart the pose there (widening the
+real jump and is left out; ``kalman.max_rejections`` in a row restart the track: by default in hindsight,
+from the first refused estimate the last one continues (``TrackConfig.retro_restart``: the smoother takes
+the new track for the frames the old one was wrong on), else at the last estimate alone (widening the
 prediction, so a smoothed run keeps the track in one piece, :meth:`PoseKalman.restart`).
 """
 
@@ -38,7 +40,7 @@ from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
 from surftrack.track.instrument import InstrumentKalman, PartFilter
-from surftrack.track.kalman import FilterStep, PoseKalman
+from surftrack.track.kalman import FilterStep, PoseKalman, refilter
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
 from surftrack.track.status import POSED, Diagnostics, Status
 from surftrack.track.trocar import Trocar
@@ -140,6 +142,9 @@ class PartState:
         out = self.with_step(step)
         if out.filter_step is None:
             return out
+        if step.prior is None and self.filter_step is not None and self.filter_step.prior is not None:
+            # the smoothed track starts here where the causal one went on: restarted in hindsight
+            out = dataclasses.replace(out, status=Status.KEYFRAME, info=dataclasses.replace(out.info, restarted=True))
         # the smoother moving the pose away from what the forward filter had is a disagreement the
         # covariance does not show (zero when causal)
         moved = 0.0 if self.t is None else float(np.linalg.norm(out.t - self.t))
@@ -242,6 +247,11 @@ class _Track:
         self.unseen = 0  # estimator runs in a row that saw nothing of a tracked part
         self.occluded = 0  # frames held (predicted) while unseen and the rest of its instrument was measured
         self.nis = 1.0  # running mean of the measurements' normalised innovation (d2 / dof; 1 when consistent)
+        # frames since the first of the estimates in a row the filter refused: (time s, the refused
+        # estimate (R, t, covariance) or None), for restarting in hindsight (retro_restart)
+        self.streak: list[tuple[float, tuple | None]] = []
+        self.refused: tuple | None = None  # this frame's refused estimate
+        self.revision: tuple[FilterStep, ...] = ()  # earlier frames' steps a restart in hindsight replaced
         self.info = Diagnostics()
         rng = np.random.default_rng(spec.obj_id)
         v = spec.vertices
@@ -275,6 +285,7 @@ class _Track:
         self.kf = self.new_filter()
         self.unseen = self.occluded = 0
         self.nis = 1.0
+        self.streak, self.refused, self.revision = [], None, ()
         self.status = Status.LOST
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
@@ -442,12 +453,19 @@ class Tracker:
                     shared, step = (key, tr.kf.shared, snap), tr.kf.shared.part_step(snap, tr.spec.name)
                 else:
                     step = tr.kf.snapshot()
+                    if tr.revision:
+                        step, tr.revision = dataclasses.replace(step, revises=tr.revision), ()
                 state = PartState(tr.spec, tr.status, 0.0, R, t, out_boxes.get(tr.spec.track_id),
                                   dataclasses.replace(tr.info), step, shared)
                 states.append(state.settled(step, self.cfg))  # the causal confidence
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
                                         dataclasses.replace(tr.info)))
+            if tr.has_pose and isinstance(tr.kf, PoseKalman) and tr.kf.rejections_in_a_row > 0:
+                tr.streak.append((time_s, tr.refused))
+            else:
+                tr.streak = []
+            tr.refused = None
         return states
 
     # ------------------------------------------------------------------ the phases of a step
@@ -836,13 +854,15 @@ class Tracker:
                 elif tr.kf.lost:
                     # the estimator has disagreed with the track on max_rejections frames in a row:
                     # the track is what is wrong (and so were its disagreements: the NIS starts afresh)
-                    tr.kf.restart(res.R, res.t, est_cov, self._widen)
+                    if not (cfg.retro_restart and self._restart_in_hindsight(tr, res.R, res.t, est_cov, time_s)):
+                        tr.kf.restart(res.R, res.t, est_cov, self._widen)
                     tr.status, tr.since_meas, tr.nis = Status.KEYFRAME, 0, 1.0
                     tr.info.restarted = True
                 else:
                     # one disagreement is as often the estimator's outlier (a flipped jaw, a shaft's
                     # roll) as a fast move: the filter carries the pose and the next frames decide
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight, accepted=False)
+                    tr.refused = (res.R, res.t, est_cov)
                 tr.since_keyframe = 0
             elif good:
                 tr.kf.init(res.R, res.t, time_s, est_cov)
@@ -875,6 +895,36 @@ class Tracker:
             else:
                 tr.drop()
                 tr.info.why_lost = why_lost
+
+    @staticmethod
+    def _restart_in_hindsight(tr: _Track, R: np.ndarray, t: np.ndarray, cov: np.ndarray, time_s: float) -> bool:
+        """Restart ``tr``'s filter from the estimates it refused in a row before this one (``R``, ``t``,
+        ``cov``), as if they had started a new track: the frames since the first of them get the steps of
+        that run (``tr.revision``, for the smoother), the filter goes on from it. Offline, the frames the
+        track was wrong on before the estimator had disagreed often enough are then right too, and the
+        jump moves to the first of them. Only the refused estimates this one continues count: a filter run
+        backward in time from it (the time negated; a constant-velocity model runs either way) takes them
+        while they pass its gate, and the first it refuses (a flipped jaw, another tool) ends the run.
+        False where there is nothing to restart from (no such estimate, or an instrument's articulated
+        state)."""
+        if not isinstance(tr.kf, PoseKalman):
+            return False
+        back = PoseKalman(tr.kf.config)
+        back.init(R, t, -time_s, cov)
+        first, measured = None, True
+        for k in range(len(tr.streak) - 1, -1, -1):
+            ts, meas = tr.streak[k]
+            back.predict(-ts, coast=not measured)
+            measured = meas is not None and back.update(*meas)
+            if meas is not None and not measured:
+                break
+            if measured:
+                first = k
+        if first is None:
+            return False
+        kf, steps = refilter(tr.kf.config, tr.streak[first:] + [(time_s, (R, t, cov))], last_ungated=True)
+        tr.kf, tr.revision = kf, tuple(steps[:-1])
+        return True
 
     def _refresh_points(self, gray: np.ndarray) -> None:
         """Pick fresh flow points where needed (after all poses of the frame are settled)."""
