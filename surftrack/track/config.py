@@ -96,8 +96,6 @@ class TrackConfig:
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
     take the new one's poses once smoothed (a causal run only gains the better-founded restart).
-    ``retro_agreeing``: with ``retro_restart``, restart as soon as a refused estimate continues the
-    ``retro_agreeing`` refused before it (0: only after ``kalman.max_rejections``).
 
     ``confidence_add``, ``confidence_scale``, ``confidence_nis_weight``: a written pose's confidence
     (:func:`~surftrack.track.tracker.confidence`) is the probability that its position error is within
@@ -176,7 +174,6 @@ class TrackConfig:
     init_min_score: float = 0.0
     smooth_lag_s: float = 1.0
     retro_restart: bool = True
-    retro_agreeing: int = 0
     confidence_add: float = 0.1
     confidence_scale: float = 1.5
     confidence_nis_weight: float = 0.3
@@ -214,8 +211,6 @@ class TrackConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
-        if self.retro_agreeing < 0:
-            raise ValueError(f"retro_agreeing must be >= 0 (0: off), got {self.retro_agreeing}")
         if self.max_occluded < 0:
             raise ValueError(f"max_occluded must be >= 0, got {self.max_occluded}")
         for name in ("max_points", "refresh_every", "max_predicted", "region_points"):

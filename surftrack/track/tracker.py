@@ -851,13 +851,10 @@ class Tracker:
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight)
                     if isinstance(tr.kf, PartFilter) and tr.kf.is_root:
                         tr.kf.shared.note_root_pose(res.R, res.t)  # an independent shaft axis for the trocar
-                elif tr.kf.lost or (cfg.retro_restart and cfg.retro_agreeing > 0 and self._restart_in_hindsight(
-                        tr, res.R, res.t, est_cov, time_s, cfg.retro_agreeing)):
-                    # the estimator has disagreed with the track on max_rejections frames in a row, or on
-                    # fewer that continue each other (retro_agreeing; restarted already): the track is what
-                    # is wrong (and so were its disagreements: the NIS starts afresh)
-                    if tr.kf.lost and not (cfg.retro_restart and self._restart_in_hindsight(
-                            tr, res.R, res.t, est_cov, time_s)):
+                elif tr.kf.lost:
+                    # the estimator has disagreed with the track on max_rejections frames in a row:
+                    # the track is what is wrong (and so were its disagreements: the NIS starts afresh)
+                    if not (cfg.retro_restart and self._restart_in_hindsight(tr, res.R, res.t, est_cov, time_s)):
                         tr.kf.restart(res.R, res.t, est_cov, self._widen)
                     tr.status, tr.since_meas, tr.nis = Status.KEYFRAME, 0, 1.0
                     tr.info.restarted = True
@@ -900,8 +897,7 @@ class Tracker:
                 tr.info.why_lost = why_lost
 
     @staticmethod
-    def _restart_in_hindsight(tr: _Track, R: np.ndarray, t: np.ndarray, cov: np.ndarray, time_s: float,
-                              min_taken: int = 0) -> bool:
+    def _restart_in_hindsight(tr: _Track, R: np.ndarray, t: np.ndarray, cov: np.ndarray, time_s: float) -> bool:
         """Restart ``tr``'s filter from the estimates it refused in a row before this one (``R``, ``t``,
         ``cov``), as if they had started a new track: the frames since the first of them get the steps of
         that run (``tr.revision``, for the smoother), the filter goes on from it. Offline, the frames the
@@ -909,13 +905,13 @@ class Tracker:
         jump moves to the first of them. Only the refused estimates this one continues count: a filter run
         backward in time from it (the time negated; a constant-velocity model runs either way) takes them
         while they pass its gate, and the first it refuses (a flipped jaw, another tool) ends the run.
-        False where there is nothing to restart from (fewer than ``min_taken`` or no such estimates, or an
-        instrument's articulated state)."""
+        False where there is nothing to restart from (no such estimate, or an instrument's articulated
+        state)."""
         if not isinstance(tr.kf, PoseKalman):
             return False
         back = PoseKalman(tr.kf.config)
         back.init(R, t, -time_s, cov)
-        first, measured, taken = None, True, 0
+        first, measured = None, True
         for k in range(len(tr.streak) - 1, -1, -1):
             ts, meas = tr.streak[k]
             back.predict(-ts, coast=not measured)
@@ -923,8 +919,8 @@ class Tracker:
             if meas is not None and not measured:
                 break
             if measured:
-                first, taken = k, taken + 1
-        if first is None or taken < min_taken:
+                first = k
+        if first is None:
             return False
         kf, steps = refilter(tr.kf.config, tr.streak[first:] + [(time_s, (R, t, cov))], last_ungated=True)
         tr.kf, tr.revision = kf, tuple(steps[:-1])
