@@ -1,11 +1,13 @@
 """The error-state RTS smoother against filterpy's linear RTS and a brute-force batch solution, on
 rotations, and as a fixed-lag stream."""
 
+import dataclasses
+
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from surftrack.geometry import rotation_angle_deg, so3_exp
-from surftrack.track.kalman import KalmanConfig, PoseKalman, _block_q
+from surftrack.track.kalman import KalmanConfig, PoseKalman, _block_q, refilter
 from surftrack.track.smoother import LagSmoother, rts_smooth
 
 DT = 1 / 30
@@ -151,3 +153,23 @@ def test_lag_smoother_stream():
     assert all(np.allclose(st["p"].x, f.x) for (_, st), f in zip(got[40:], full[40:]))
     causal = LagSmoother(lag=0)
     assert [st["p"] is s for s in steps[:3] for _, st in causal.push(0, {"p": s})] == [True] * 3
+
+
+def test_a_revision_replaces_the_buffered_steps_and_starts_where_the_buffer_does():
+    """A step that ``revises`` earlier frames (a restart in hindsight) has the smoother take the revised
+    steps for the frames still buffered; released frames keep theirs, and the first revised frame still
+    buffered starts a segment (the revised run does not continue what was written)."""
+    truth, meas, steps = _translation_run(n=20)
+    shifted = [(s.time, (np.eye(3), m + np.array([30.0, 0, 0]), MEAS_COV)) for s, m in zip(steps[8:16], meas[8:16])]
+    kf, revised = refilter(CFG, shifted, last_ungated=True)
+    sm, got = LagSmoother(lag=4, chunk=1), []
+    for k in range(15):
+        got += sm.push(k, {"p": steps[k]})
+    released = {i for i, _ in got}
+    assert released == set(range(11))  # frames 8-10 are written already
+    got += sm.push(15, {"p": dataclasses.replace(kf.snapshot(), revises=tuple(revised[:-1]))})
+    got += sm.flush()
+    by = {i: st["p"] for i, st in got}
+    assert all(np.linalg.norm(by[k].x[0:3] - truth[k]) < 8.0 for k in range(11))
+    assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(11, 16))
+    assert by[11].prior is None and all(by[k].prior is not None for k in range(12, 16))

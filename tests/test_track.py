@@ -774,12 +774,14 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
     out = [state.settle(steps, cfg) for state, steps in ready + smoother.flush()]
     assert len(out) == 5 and all(np.linalg.norm(o.t - moved) < 0.5 for o in out[2:])
     start = 1 if flipped else 0
-    if retro:  # the new track starts at its first refused estimate, and the jump is there
+    if retro:  # the new track starts at its first refused estimate, and the jump is there, not later
         assert all(np.linalg.norm(o.t - moved) < 0.5 for o in out[start:])
         assert out[start].status == "keyframe" and out[start].info.restarted
-        assert not any(o.info.restarted for o in out[start + 1:2])
+        assert [bool(o.info.restarted) for o in out[start + 1:]] == [False] * (4 - start)
+        assert min(o.confidence for o in out[start:]) > 0.3  # the old track's NIS and pose are not the new one's
     else:  # smoothing leaves the refused frames with the old track (the restart widened the prediction)
         assert all(np.linalg.norm(o.t - t) < 2.0 and not o.info.restarted for o in out[:2])
+        assert out[2].info.restarted
     if flipped:
         assert np.linalg.norm(out[0].t - t) < 2.0 and not out[0].info.restarted
 

@@ -212,8 +212,9 @@ class FilterStep:
     """One frame of a part's filter: ``time`` (s), filtered nominal rotation ``R`` (3, 3), error state
     ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12); ``prior``:
     the prediction into this frame, or None where a segment starts (first pose, re-initialisation).
-    ``revises``: the filtered steps of earlier frames, oldest first, that replace the ones this filter
-    gave them (a track restarted in hindsight, :func:`refilter`); the smoother swaps them in."""
+    ``revises``: the filtered steps of earlier frames, oldest first, that replace the ones the filter
+    gave them before a restart in hindsight (:func:`refilter`); the smoother swaps them in. ``revised``:
+    this step is one of them (or smoothed from one)."""
 
     time: float
     R: np.ndarray
@@ -221,6 +222,7 @@ class FilterStep:
     P: np.ndarray
     prior: FilterPrior | None
     revises: tuple[FilterStep, ...] = ()
+    revised: bool = False
 
     @property
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -243,9 +245,9 @@ def refilter(config: KalmanConfig, frames: Sequence[tuple[float, tuple | None]],
     """A fresh filter run over ``frames``: per frame ``(time s, (R (3, 3), t (3,) mm, covariance 6x6) or
     None)``, the first with a measurement (the filter starts there), then predicted frame to frame and
     updated where measured (gated as usual, the last frame's ungated with ``last_ungated``; velocities
-    coast after an unmeasured frame). Returns the
-    filter at the last frame and its step on every frame. This is how a track found wrong is restarted
-    in hindsight: from the estimates it refused, as far back as they go."""
+    coast after an unmeasured frame). Returns the filter at the last frame and its step on every frame.
+    This is how a track found wrong is restarted in hindsight: from the estimates it refused, as far back
+    as they go."""
     if not frames or frames[0][1] is None:
         raise ValueError("refilter needs a measurement on its first frame")
     kf = PoseKalman(config)

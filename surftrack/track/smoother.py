@@ -15,11 +15,12 @@ until ``lag`` newer frames exist, so each is smoothed with at least ``lag`` fram
 constant-velocity model a second of future holds nearly all the information a full pass would use) while
 memory stays flat in the video's length. ``lag = 0`` passes frames through unchanged (causal). A step
 that ``revises`` earlier frames (a track restarted in hindsight) replaces their buffered steps before the
-next pass.
+next pass; frames already released keep what was written.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -43,7 +44,7 @@ def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
         x = cur.x + C @ (d - pr.x)
         P = cur.P + C @ (P_nxt - pr.P) @ C.T
         R, x, P = inject_rotation(cur.R, x, P)
-        out[k] = FilterStep(cur.time, R, x, P, cur.prior)
+        out[k] = FilterStep(cur.time, R, x, P, cur.prior, revised=cur.revised)
     return out
 
 
@@ -77,12 +78,17 @@ class LagSmoother:
 
     def _revise(self, key: str, revised: Sequence[FilterStep]) -> None:
         """Swap the buffered steps of ``key`` for the ``revised`` ones of the same frames (matched by
-        time); frames already released keep theirs."""
+        time). Frames already released keep theirs, and the first revised frame still buffered then
+        starts a segment: the revised run does not continue what was written."""
         by_time = {r.time: r for r in revised}
+        first = True
         for _, st in self._buf:
             old = st.get(key)
             if old is not None and old.time in by_time:
-                st[key] = by_time[old.time]
+                new = by_time[old.time]
+                if first and new.time != revised[0].time:
+                    new = dataclasses.replace(new, prior=None)
+                st[key], first = new, False
 
     def flush(self) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         return self._release(len(self._buf))

@@ -32,7 +32,7 @@ import numpy as np
 import trimesh
 
 from surftrack.eval import diameter_bbox_diagonal
-from surftrack.geometry import Box, project_points, se3, transform_points
+from surftrack.geometry import Box, project_points, rotation_angle_deg, se3, transform_points
 from surftrack.instruments import BUILTIN, HALF_TURN, Instrument, InstrumentRegistry, JointState, joints_from_poses
 from surftrack.pose import PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_instrument, instrument_parts
@@ -61,6 +61,11 @@ NIS_CAP = 100.0
 # covariance (10x its standard deviations) on top: wide enough to take the estimate, without cutting the
 # track in two for the smoother
 RESTART_WIDEN = 100.0
+# a restart in hindsight goes back at most this far (s: the default smoothing lag; frames before it are
+# written already) and takes no refused estimate turned further than this (deg) from the restarted
+# track's (a flipped jaw or shaft roll, ~180 deg, which a fresh filter's rate uncertainty can let pass)
+RETRO_MAX_S = 1.0
+RETRO_MAX_TURN_DEG = 90.0
 # an inconclusive estimate (too few inliers, a false box) asked for because the measurements failed keeps
 # the track until this many times max_predicted frames have passed without a measurement
 INCONCLUSIVE_PATIENCE = 3
@@ -138,18 +143,25 @@ class PartState:
 
     def settled(self, step: FilterStep | None, cfg: TrackConfig) -> PartState:
         """The state as a run writes it: pose from ``step`` (smoothed, or the filter's when causal) and
-        its confidence, :func:`confidence`."""
+        its confidence, :func:`confidence`. Smoothed after a restart in hindsight, the frame where the new
+        track begins is the restart (``restarted``), and the frame the tracker restarted on is not."""
         out = self.with_step(step)
         if out.filter_step is None:
             return out
-        if step.prior is None and self.filter_step is not None and self.filter_step.prior is not None:
-            # the smoothed track starts here where the causal one went on: restarted in hindsight
-            out = dataclasses.replace(out, status=Status.KEYFRAME, info=dataclasses.replace(out.info, restarted=True))
+        nis = 1.0 if self.info.nis is None else self.info.nis
         # the smoother moving the pose away from what the forward filter had is a disagreement the
         # covariance does not show (zero when causal)
         moved = 0.0 if self.t is None else float(np.linalg.norm(out.t - self.t))
-        conf = confidence(out.filter_step.P[0:3, 0:3], 1.0 if self.info.nis is None else self.info.nis, moved,
-                          self.spec.diameter, cfg)
+        causal = self.filter_step
+        if step is not None and step is not causal and causal is not None:
+            if step.revised:  # restarted in hindsight: the causal pose and its NIS were the old track's
+                moved, nis = 0.0, 1.0
+                if step.prior is None and causal.prior is not None:  # the smoothed track starts here
+                    out = dataclasses.replace(out, status=Status.KEYFRAME,
+                                              info=dataclasses.replace(out.info, restarted=True))
+            elif causal.revises and self.info.restarted:  # the restart moved back to the revised frames
+                out = dataclasses.replace(out, info=dataclasses.replace(out.info, restarted=None))
+        conf = confidence(out.filter_step.P[0:3, 0:3], nis, moved, self.spec.diameter, cfg)
         return dataclasses.replace(out, confidence=conf)
 
 
@@ -418,6 +430,7 @@ class Tracker:
             tr.kf = tr.new_filter()
             tr.kf.init(R, t, time_s - 1e-6, self._est_cov)
         tr.status, tr.nis = Status.KEYFRAME, 1.0
+        tr.streak, tr.refused, tr.revision = [], None, ()
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
@@ -904,7 +917,9 @@ class Tracker:
         track was wrong on before the estimator had disagreed often enough are then right too, and the
         jump moves to the first of them. Only the refused estimates this one continues count: a filter run
         backward in time from it (the time negated; a constant-velocity model runs either way) takes them
-        while they pass its gate, and the first it refuses (a flipped jaw, another tool) ends the run.
+        while they pass its gate; the first it refuses (another tool), one turned more than
+        ``RETRO_MAX_TURN_DEG`` from it (a flipped jaw) or one older than ``RETRO_MAX_S`` ends the run.
+        Region and flow measurements of those frames are left out (they measured the old track's pose).
         False where there is nothing to restart from (no such estimate, or an instrument's articulated
         state)."""
         if not isinstance(tr.kf, PoseKalman):
@@ -914,8 +929,11 @@ class Tracker:
         first, measured = None, True
         for k in range(len(tr.streak) - 1, -1, -1):
             ts, meas = tr.streak[k]
+            if ts < time_s - RETRO_MAX_S:
+                break
             back.predict(-ts, coast=not measured)
-            measured = meas is not None and back.update(*meas)
+            measured = (meas is not None and rotation_angle_deg(meas[0], back.pose[0]) <= RETRO_MAX_TURN_DEG
+                        and back.update(*meas))
             if meas is not None and not measured:
                 break
             if measured:
@@ -923,7 +941,7 @@ class Tracker:
         if first is None:
             return False
         kf, steps = refilter(tr.kf.config, tr.streak[first:] + [(time_s, (R, t, cov))], last_ungated=True)
-        tr.kf, tr.revision = kf, tuple(steps[:-1])
+        tr.kf, tr.revision = kf, tuple(dataclasses.replace(s, revised=True) for s in steps[:-1])
         return True
 
     def _refresh_points(self, gray: np.ndarray) -> None:
