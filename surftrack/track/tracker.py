@@ -475,7 +475,7 @@ class Tracker:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
                                         dataclasses.replace(tr.info)))
             if tr.has_pose and isinstance(tr.kf, PoseKalman) and tr.kf.rejections_in_a_row > 0:
-                tr.streak.append((time_s, tr.refused))
+                tr.streak = [f for f in tr.streak if f[0] >= time_s - RETRO_MAX_S] + [(time_s, tr.refused)]
             else:
                 tr.streak = []
             tr.refused = None
