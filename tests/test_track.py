@@ -784,6 +784,33 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
         assert out[2].info.restarted
     if flipped:
         assert np.linalg.norm(out[0].t - t) < 2.0 and not out[0].info.restarted
+    # the run ends on the restart frame: its step comes back unsmoothed, and the jump is still marked once
+    smoother = LagSmoother(lag=3)
+    ready = [r for state in states[:3] for r in smoother.push(state, filter_steps([state]))]
+    flags = [bool(state.settle(steps, cfg).info.restarted) for state, steps in ready + smoother.flush()]
+    assert sum(flags) == 1 and flags[2] == (not retro)
+
+
+def test_a_restart_in_hindsight_reaches_one_second_back_and_leaves_out_a_half_turn():
+    """The refused estimates a restart in hindsight starts from: at most 1 s back (``RETRO_MAX_S``), and not
+    past one turned half a turn from the rest, even where estimates so uncertain in rotation pass the
+    backward filter's gate."""
+    from types import SimpleNamespace
+
+    from surftrack.track.kalman import KalmanConfig, PoseKalman
+
+    loose = np.diag([1.0] * 3 + [np.radians(90.0) ** 2] * 3)  # a half turn is within this one's gate
+    t = np.array([0.0, 0.0, 80.0])
+
+    def restart(turned_at=None):
+        times = np.round(np.arange(0.0, 1.5, 0.1), 3)
+        streak = [(ts, (np.diag([1.0, -1.0, -1.0]) if ts == turned_at else np.eye(3), t, loose)) for ts in times]
+        tr = SimpleNamespace(kf=PoseKalman(KalmanConfig()), streak=streak, revision=())
+        assert Tracker._restart_in_hindsight(tr, np.eye(3), t, loose, 1.5)
+        return [r.time for r in tr.revision]
+
+    assert restart() == [0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4]  # RETRO_MAX_S = 1 s back
+    assert restart(turned_at=1.2) == [1.3, 1.4]
 
 
 def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(lnd_parts):

@@ -68,10 +68,12 @@ class LagSmoother:
         return len(self._buf)
 
     def push(self, item: Any, steps: dict[str, FilterStep | None]) -> list[tuple[Any, dict[str, FilterStep | None]]]:
+        steps = dict(steps)
         for key, step in steps.items():
-            if step is not None and step.revises:
+            if step is not None and step.revises and self.lag:
                 self._revise(key, step.revises)
-        self._buf.append((item, dict(steps)))
+                steps[key] = dataclasses.replace(step, revises=())  # done with: not kept, and not the causal step
+        self._buf.append((item, steps))
         if len(self._buf) < self.lag + self.chunk:
             return []
         return self._release(len(self._buf) - self.lag)
