@@ -336,7 +336,7 @@ def test_coast_time_constant_is_checked():
 
 def test_change_chart_follows_the_rotation_map():
     """The re-expressed covariance is the original one through the numerical Jacobian of moving a rotation
-    error to the other chart, and leaving it unchanged would be measurably off ~27 deg apart."""
+    error to the other chart, and leaving it unchanged would be measurably off ~29 deg apart."""
     from surftrack.track.kalman import change_chart
 
     rng = np.random.default_rng(5)
