@@ -291,13 +291,27 @@ class _Track:
         # a gated-out estimate counts too (capped, NIS_CAP)
         self.nis = (1.0 - weight) * self.nis + weight * min(d2 / max(dof, 1), NIS_CAP)
 
+    def forget_refusals(self) -> None:
+        """Clear what a restart in hindsight reads: a new track owns none of the old one's refusals."""
+        self.streak, self.refused, self.revision = [], None, ()
+
+    def note_refusals(self, time_s: float) -> None:
+        """At the end of the frame at ``time_s``: while the filter's refusals in a row last, the frame (and
+        its refused estimate, if any) joins the streak, of which only the last ``RETRO_MAX_S`` is kept;
+        else the streak is cleared."""
+        if self.has_pose and isinstance(self.kf, PoseKalman) and self.kf.rejections_in_a_row > 0:
+            self.streak = [f for f in self.streak if f[0] >= time_s - RETRO_MAX_S] + [(time_s, self.refused)]
+        else:
+            self.streak = []
+        self.refused = None
+
     def drop(self) -> None:
         if isinstance(self.kf, PartFilter):
             self.kf.deactivate()
         self.kf = self.new_filter()
         self.unseen = self.occluded = 0
         self.nis = 1.0
-        self.streak, self.refused, self.revision = [], None, ()
+        self.forget_refusals()
         self.status = Status.LOST
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
@@ -430,7 +444,7 @@ class Tracker:
             tr.kf = tr.new_filter()
             tr.kf.init(R, t, time_s - 1e-6, self._est_cov)
         tr.status, tr.nis = Status.KEYFRAME, 1.0
-        tr.streak, tr.refused, tr.revision = [], None, ()
+        tr.forget_refusals()
         tr.since_keyframe = tr.since_meas = 0
         tr.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
         tr.n_points_fresh = 0
@@ -474,11 +488,7 @@ class Tracker:
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
                                         dataclasses.replace(tr.info)))
-            if tr.has_pose and isinstance(tr.kf, PoseKalman) and tr.kf.rejections_in_a_row > 0:
-                tr.streak = [f for f in tr.streak if f[0] >= time_s - RETRO_MAX_S] + [(time_s, tr.refused)]
-            else:
-                tr.streak = []
-            tr.refused = None
+            tr.note_refusals(time_s)
         return states
 
     # ------------------------------------------------------------------ the phases of a step
