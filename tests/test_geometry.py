@@ -292,3 +292,23 @@ def test_project_pose_jacobian_matches_central_differences():
         up = project_points(K, X @ (R @ so3_exp(d[3:])).T + t + d[:3])
         dn = project_points(K, X @ (R @ so3_exp(-d[3:])).T + t - d[:3])
         np.testing.assert_allclose(J[:, :, k], (up - dn) / 2e-6, rtol=1e-5, atol=1e-5)
+
+
+def test_unwarp_image_carries_a_crop_back_into_the_frame():
+    """A smooth image warped into an upscaled crop and carried back with unwarp_image matches itself on
+    the pixels the crop saw (bilinear both ways), and only those are marked covered."""
+    from surftrack.geometry import crop_warp, unwarp_image
+
+    yy, xx = np.mgrid[0:120, 0:160].astype(np.float32)
+    img = np.sin(xx / 9.0) + np.cos(yy / 7.0)
+    box = (40.0, 30.0, 100.0, 90.0)
+    M = crop_warp(box, (120, 120))  # 2x
+    crop = warp_image(img, M, (120, 120))
+    back, covered = unwarp_image(crop, M, (160, 120))
+    assert back.shape == covered.shape == (120, 160)
+    assert covered[30:90, 40:100].all() and not covered[:29].any() and not covered[:, :39].any()
+    assert not covered[91:].any() and not covered[:, 101:].any()
+    inner = np.zeros_like(covered)
+    inner[32:88, 42:98] = True
+    assert np.abs(back - img)[inner].max() < 0.02
+    assert (back[~covered] == 0).all()

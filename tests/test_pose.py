@@ -328,3 +328,27 @@ def test_bad_inputs_raise_clear_errors(tiny_model):
         PoseEstimator(tiny_model, "slow")
     with pytest.raises(ValueError, match="SurfSurg6D model or a checkpoint"):
         PoseEstimator(42)
+
+
+def test_the_network_masks_come_with_the_poses_when_asked(tiny_model):
+    """``masks=True``: each pose carries its crop's foreground probability (the network's sigmoid), the
+    poses themselves unchanged; ``image_mask`` puts it into the frame over the crop's pixels only."""
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, (540, 960, 3), dtype=np.uint8)
+    est = PoseEstimator(tiny_model, "fast", device="cpu", crop_size=64)
+    plain = est.estimate(img, BOXES, K_LND)
+    with_masks = est.estimate(img, BOXES, K_LND, masks=True)
+    assert all(p.mask is None for p in plain)
+    for a, b in zip(plain, with_masks):
+        assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+        assert b.mask.shape == (64, 64) and b.mask.dtype == np.float32
+        assert 0.0 <= b.mask.min() and b.mask.max() <= 1.0
+        prob, covered = b.image_mask((960, 540))
+        x0, y0, x1, y1 = b.crop_box
+        inside, near = np.zeros((540, 960), bool), np.zeros((540, 960), bool)
+        inside[max(int(np.ceil(y0)), 0):int(y1), max(int(np.ceil(x0)), 0):int(x1)] = True
+        r = int(np.ceil((x1 - x0) / 64)) + 1  # a crop pixel's reach in the frame (bilinear)
+        near[max(int(y0) - r, 0):int(y1) + r, max(int(x0) - r, 0):int(x1) + r] = True
+        assert covered.sum() > 0 and (covered <= inside).all() and (prob[~near] == 0).all()
+    with pytest.raises(ValueError, match="without its mask"):
+        plain[0].image_mask((960, 540))

@@ -118,7 +118,7 @@ class _GroundTruthEstimator:
         a = np.radians(shaft_roll_deg)
         self.roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
-    def estimate(self, image, boxes, K, priors=None, groups=None):
+    def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
         from surftrack.pose.estimator import PartPose
 
         out = []
@@ -215,7 +215,7 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
     hidden: set[str] = set()
 
     class Hiding(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             out = super().estimate(image, boxes, K, priors, groups)
             return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part in hidden else r for r in out]
 
@@ -260,7 +260,7 @@ def test_a_part_its_own_estimate_misses_is_measured_through_the_instrument_fit(c
                                                         for j in range(k - 1, k + n)))
 
     class Unseen(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             out = super().estimate(image, boxes, K, priors, groups)
             return [dataclasses.replace(r, score=-1.0, n_inliers=0) if r.part == "shaft" else r for r in out]
 
@@ -464,6 +464,48 @@ def test_bundled_model_tracks_the_clip_against_ground_truth(clip, tmp_path):
     assert run["frames"] == len(_frames(clip))
     assert wrist["visible_frames"] >= 5 and wrist["posed_frames"] == wrist["visible_frames"], wrist
     assert wrist["re_median_deg"] < 25.0 and wrist["te_median_mm"] < 20.0, wrist
+
+
+def test_the_silhouettes_colours_are_learnt_from_the_networks_masks(clip, lnd_parts):
+    """By default a keyframe teaches the silhouette measurement its colours from the network's masks of the
+    parts (the bundled model, a real frame), not from the track's predicted silhouette: the colour model is
+    ready after the first keyframe and tells the instrument's true silhouette from its surroundings.
+    With ``region_colors: track`` nothing is learnt on a keyframe."""
+    import cv2
+
+    from surftrack.model import load_checkpoint
+    from surftrack.paths import default_model_path
+    from surftrack.pose import PoseEstimator
+    from surftrack.track import load_track_config
+
+    model = load_checkpoint(default_model_path())[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    i = max(range(len(frames)), key=lambda k: min(gt.pose(k, tid)[2] for tid in lnd_parts.values()))
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    truth = {s.name: gt.pose(i, s.track_id)[:2] for s in specs}
+    boxes = {s.track_id: [(projected_box(K, *truth[s.name], s.vertices, (320, 256))[0], 1.0)] for s in specs}
+    for colors in ("network", "track"):
+        tracker = Tracker(PoseEstimator(model, "fast", device="cpu"), K, (320, 256), specs,
+                          TrackConfig(region_colors=colors))
+        states = tracker.step(frames[i], i / 10.0, boxes)
+        assert any(s.info.estimator for s in states), [s.status for s in states]  # a keyframe, with masks
+        rt = tracker._region_tracker()
+        group = rt.groups[specs[0].name]
+        if colors == "track":
+            assert not rt.colors[group].ready
+            continue
+        assert rt.colors[group].ready
+        mask = rt.contours(truth)[1][group].astype(np.uint8)
+        inner = cv2.erode(mask, np.ones((3, 3), np.uint8)) > 0
+        ring = (cv2.dilate(mask, np.ones((13, 13), np.uint8)) > 0) & ~(cv2.dilate(mask, np.ones((5, 5), np.uint8)) > 0)
+        p = rt.colors[group].p_fg(frames[i])
+        assert p[inner].mean() > 0.6 and p[ring].mean() < 0.4, (p[inner].mean(), p[ring].mean())
+        tracker.close()
+    assert load_track_config().region_colors == "network"
+    with pytest.raises(ValueError, match="region_colors must be one of network, track"):
+        TrackConfig(region_colors="image")
+    with pytest.raises(ValueError, match="region_mask_rate"):
+        TrackConfig(region_mask_rate=1.5)
 
 
 def test_a_causal_run_never_reads_a_future_frame_and_a_smoothed_one_waits_for_its_lag(clip, tmp_path, monkeypatch):
@@ -700,7 +742,7 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
         def __init__(self):
             self.model, self.frame = model, 0
 
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             score, inliers = next(script)
             R, t, _ = gt.pose(self.frame, tid)
             return [PartPose(o, info.name, info.instrument, R, t, score, inliers, True, {}, (0, 0, 1, 1), np.eye(3))
@@ -741,7 +783,7 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
         def __init__(self):
             self.model, self.shift, self.turn = model, np.zeros(3), np.eye(3)
 
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             return [PartPose(o, info.name, info.instrument, R @ self.turn, t + self.shift, 5.0, 200, True, {},
                              (0, 0, 1, 1), np.eye(3)) for o, _ in boxes]
 
@@ -1087,7 +1129,7 @@ def test_the_jaws_keyframes_read_the_boxes_of_the_tracked_twins_jaws(clip, lnd_p
     asked: dict[str, tuple] = {}
 
     class Recording(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             out = super().estimate(image, boxes, K, priors, groups)
             names = {p.obj_id: p.name for p in self.model.parts}
             asked.update({names[o]: b for o, b in boxes})
@@ -1125,7 +1167,7 @@ def test_a_keyframe_keeps_the_tracked_twin(clip, lnd_parts, tiny_ckpt):
     asked: dict[str, tuple] = {}
 
     class Recording(_GroundTruthEstimator):
-        def estimate(self, image, boxes, K, priors=None, groups=None):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
             names = {p.obj_id: p.name for p in self.model.parts}
             asked.update({names[o]: b for o, b in boxes})
             return super().estimate(image, boxes, K, priors, groups)

@@ -136,6 +136,18 @@ class PinholeCamera:
         return cls(K, int(d["width"]), int(d["height"]), np.asarray(d.get("dist", []), dtype=np.float64))
 
 
+def crop_warp(box: Box, size: tuple[int, int]) -> np.ndarray:
+    """Warp matrix (2, 3) (image pixel centre -> crop pixel centre) of the upright crop ``box`` = (x0, y0,
+    x1, y1) (pixel-edge coordinates) resampled to ``size`` = (width, height): ``(u + 0.5 - x0) * s - 0.5``
+    with ``s = width / (x1 - x0)``."""
+    x0, y0, x1, y1 = (float(b) for b in box)
+    w, h = int(size[0]), int(size[1])
+    if x1 <= x0 or y1 <= y0 or w <= 0 or h <= 0:
+        raise ValueError(f"invalid crop box {box} or size {size}")
+    sx, sy = w / (x1 - x0), h / (y1 - y0)
+    return np.array([[sx, 0.0, (0.5 - x0) * sx - 0.5], [0.0, sy, (0.5 - y0) * sy - 0.5]])
+
+
 def crop_affine(
     camera: PinholeCamera, box: Box, size: tuple[int, int]
 ) -> tuple[np.ndarray, PinholeCamera]:
@@ -144,12 +156,10 @@ def crop_affine(
     ``box`` = (x0, y0, x1, y1) in pixel-edge coordinates of ``camera``'s image, ``size`` = (width, height)
     of the output. A pixel centre u maps to ``(u + 0.5 - x0) * s - 0.5`` with ``s = width / (x1 - x0)``.
     """
-    x0, y0, x1, y1 = (float(b) for b in box)
+    M = crop_warp(box, size)
+    x0, y0 = float(box[0]), float(box[1])
+    sx, sy = M[0, 0], M[1, 1]
     w, h = int(size[0]), int(size[1])
-    if x1 <= x0 or y1 <= y0 or w <= 0 or h <= 0:
-        raise ValueError(f"invalid crop box {box} or size {size}")
-    sx, sy = w / (x1 - x0), h / (y1 - y0)
-    M = np.array([[sx, 0.0, (0.5 - x0) * sx - 0.5], [0.0, sy, (0.5 - y0) * sy - 0.5]])
     K = camera.K.copy()
     K[0, 0] *= sx
     K[0, 1] *= sx

@@ -90,3 +90,18 @@ def warp_image(img: np.ndarray, M: np.ndarray, size: int | tuple[int, int], near
                          flags=cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out.astype(bool) if img.dtype == bool else out
+
+
+def unwarp_image(crop: np.ndarray, M: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`warp_image`: ``crop`` (h, w) float, made by the warp ``M`` (2, 3; image pixel
+    centre -> crop pixel centre), carried back into an image of ``size`` (width, height), bilinearly.
+    Returns (values (H, W) float32, zero outside the crop; covered (H, W) bool: the image pixels the crop
+    saw). For putting a crop's per-pixel output (a network's mask) back into the frame."""
+    w, h = _size(size)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    M = np.asarray(M, dtype=np.float64)
+    values = cv2.warpAffine(np.asarray(crop, np.float32), M, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                            borderValue=0)
+    covered = cv2.warpAffine(np.ones(crop.shape[:2], np.float32), M, (w, h), flags=flags,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.999
+    return values, covered

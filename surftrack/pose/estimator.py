@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from surftrack.data.twin_labels import twin_labels
-from surftrack.geometry import Box, PinholeCamera, crop_affine, square_crop_box, warp_image
+from surftrack.geometry import Box, PinholeCamera, crop_affine, crop_warp, square_crop_box, unwarp_image, warp_image
 from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.model.checkpoint import load_checkpoint
 from surftrack.model.config import DataCfg
@@ -54,7 +54,9 @@ class PartPose:
     add up all views, ``score`` and ``n_inliers`` are the merged views' means, and ``counts`` are the
     reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged). ``prior_won``:
     the prior handed in scored best (the reference view's; None without a prior); ``kinematic``: the
-    pose is the instrument fit's (:func:`surftrack.pose.kinematic.apply_kinematics`), not this crop's own."""
+    pose is the instrument fit's (:func:`surftrack.pose.kinematic.apply_kinematics`), not this crop's own.
+    ``mask``: the network's foreground probability over the crop (S, S) float32 (the reference view's),
+    only where asked for (``masks=True``); :meth:`image_mask` puts it into the frame."""
 
     obj_id: int
     part: str
@@ -71,6 +73,15 @@ class PartPose:
     counts: dict[str, int] = field(default_factory=dict)
     prior_won: bool | None = None
     kinematic: bool = False
+    mask: np.ndarray | None = None
+
+    def image_mask(self, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """The network's foreground probability of this part (``mask``, its crop's) carried into the
+        image of ``size`` (width, height): (probability (H, W) float32, 0 outside the crop; covered (H, W)
+        bool, the pixels the crop saw)."""
+        if self.mask is None:
+            raise ValueError("this pose was estimated without its mask (estimate(..., masks=True))")
+        return unwarp_image(self.mask, crop_warp(self.crop_box, self.mask.shape[::-1]), size)
 
     @property
     def pose(self) -> np.ndarray:
@@ -213,27 +224,29 @@ class PoseEstimator:
     # ------------------------------------------------------------------ estimation
     def estimate(self, image: np.ndarray, boxes, K: np.ndarray,
                  priors: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
-                 groups: Sequence[Hashable] | None = None) -> list[PartPose]:
+                 groups: Sequence[Hashable] | None = None, masks: bool = False) -> list[PartPose]:
         """Poses of the parts in ``boxes`` (dict obj_id -> (x, y, w, h), or a list of (obj_id, box) for
         repeated ids) seen in ``image`` ((H, W, 3) uint8 RGB) with intrinsics ``K``; one
         :class:`PartPose` per box, in order. ``priors`` (obj_id -> (R, t), or a list aligned with a list
         of boxes, None entries allowed): poses known from elsewhere (a tracker's), scored with the
         hypotheses and kept when they explain the image best. ``groups`` (one instrument-instance key per
-        box): lets the twin parts of one instrument trade boxes (:meth:`_twin_pairs`)."""
+        box): lets the twin parts of one instrument trade boxes (:meth:`_twin_pairs`). ``masks``: each pose
+        also carries the network's mask of its crop (``PartPose.mask``)."""
         return self.estimate_batch([image], [boxes], [K], None if priors is None else [priors],
-                                   None if groups is None else [groups])[0]
+                                   None if groups is None else [groups], masks)[0]
 
     @torch.inference_mode()
     def estimate_batch(self, images: Sequence[np.ndarray], boxes_per_image: Sequence,
                        Ks: Sequence, priors: Sequence[Mapping | None] | None = None,
-                       groups: Sequence[Sequence[Hashable] | None] | None = None) -> list[list[PartPose]]:
+                       groups: Sequence[Sequence[Hashable] | None] | None = None,
+                       masks: bool = False) -> list[list[PartPose]]:
         """:meth:`estimate` for several frames; all crops share the network forward passes."""
-        return self.estimate_batch_seeds(images, boxes_per_image, Ks, [self.preset.seed], priors, groups)[0]
+        return self.estimate_batch_seeds(images, boxes_per_image, Ks, [self.preset.seed], priors, groups, masks)[0]
 
     @torch.inference_mode()
     def estimate_batch_seeds(self, images: Sequence[np.ndarray], boxes_per_image: Sequence, Ks: Sequence,
                              seeds: Sequence[int], priors: Sequence[Mapping | None] | None = None,
-                             groups: Sequence[Sequence[Hashable] | None] | None = None
+                             groups: Sequence[Sequence[Hashable] | None] | None = None, masks: bool = False
                              ) -> list[list[list[PartPose]]]:
         """:meth:`estimate_batch` once per solver seed in ``seeds`` (distinct, >= 0; the preset's seed
         replaced), from one network forward: ``result[s][i]`` are image ``i``'s poses under ``seeds[s]``,
@@ -245,9 +258,9 @@ class PoseEstimator:
         crops, crop_ms = self._crops(images, boxes_per_image, Ks, priors)
         if not crops:
             return [[[] for _ in images] for _ in seeds]
-        masks, queries, fwd_ms = self._forward(crops)
+        grids, queries, probs, fwd_ms = self._forward(crops, masks)
         return [[self._pick_twin_boxes(poses, n, p) for poses, (n, p) in
-                 zip(self._solve_all(len(images), crops, masks, queries, crop_ms, fwd_ms, s), pairs)]
+                 zip(self._solve_all(len(images), crops, grids, queries, crop_ms, fwd_ms, s, probs), pairs)]
                 for s in seeds]
 
     # ------------------------------------------------------------------ twin parts
@@ -340,8 +353,9 @@ class PoseEstimator:
         return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
 
     def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
-                   crop_ms: float, fwd_ms: float, seed: int) -> list[list[PartPose]]:
-        """Every crop's pose with solver seed ``seed``, grouped per image."""
+                   crop_ms: float, fwd_ms: float, seed: int, probs: np.ndarray | None = None) -> list[list[PartPose]]:
+        """Every crop's pose with solver seed ``seed``, grouped per image (with its crop's foreground
+        probability ``probs[k]`` where given)."""
         results: list[list[PartPose]] = [[] for _ in range(n_images)]
         threads = torch.get_num_threads()
         limit = self.device.type == "cpu" and self.solver_threads is not None and self.solver_threads != threads
@@ -352,6 +366,8 @@ class PoseEstimator:
             while s < len(crops):  # each box's views are consecutive crops (see _crops)
                 n = crops[s].views
                 views = [self._solve(crops[k], masks[k], queries[k], crop_ms, fwd_ms, seed) for k in range(s, s + n)]
+                if probs is not None:
+                    views[0] = dataclasses.replace(views[0], mask=probs[s])
                 results[crops[s].image_index].append(views[0] if n == 1 else self._merge(views))
                 s += n
         finally:
@@ -373,10 +389,12 @@ class PoseEstimator:
                                    n_inliers=int(round(np.mean([ok[m].n_inliers for m in members]))),
                                    counts={**ok[ref].counts, **counts}, prior_won=ok[ref].prior_won)
 
-    def _forward(self, crops: list[_Crop]) -> tuple[torch.Tensor, torch.Tensor, float]:
-        """Pooled mask logits (B, g, g) and queries (B, E, g, g), and the forward ms per crop."""
+    def _forward(self, crops: list[_Crop], keep_masks: bool = False
+                 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None, float]:
+        """Pooled mask logits (B, g, g) and queries (B, E, g, g), the crops' foreground probabilities (B, S,
+        S) float32 with ``keep_masks`` (else None), and the forward ms per crop."""
         timer = StageTimer(self.device)
-        masks, queries = [], []
+        masks, queries, probs = [], [], []
         use_amp = self.preset.amp and self.device.type == "cuda"
         with timer("forward"):
             for s in range(0, len(crops), self.preset.max_batch):
@@ -385,10 +403,13 @@ class PoseEstimator:
                 idx = torch.tensor([c.part_index for c in part], device=self.device)
                 with torch.autocast(self.device.type, dtype=torch.float16, enabled=use_amp):
                     m, q = self.model(self.model.normalize_images(x), idx)
+                if keep_masks:
+                    probs.append(torch.sigmoid(m.float()).cpu().numpy())
                 m, q = pool_to_grid(m.float(), q.float(), self.preset.stride)
                 masks.append(m)
                 queries.append(q)
-        return torch.cat(masks), torch.cat(queries), timer.ms["forward"] / len(crops)
+        return (torch.cat(masks), torch.cat(queries), np.concatenate(probs) if keep_masks else None,
+                timer.ms["forward"] / len(crops))
 
     def _solve(self, c: _Crop, mask: torch.Tensor, query: torch.Tensor, crop_ms: float,
                fwd_ms: float, seed: int) -> PartPose:

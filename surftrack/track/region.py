@@ -290,14 +290,18 @@ class RegionTracker:
         return mu * scale, var * scale**2, valid, pf
 
     def learn(self, image: np.ndarray, group: str, mask: np.ndarray, band_px: int = 12, gap_px: int = 2,
-              rate: float = 1.0) -> None:
+              rate: float = 1.0, within: np.ndarray | None = None) -> None:
         """Update an instrument's colour model from its silhouette ``mask`` (foreground, less its edge
         pixels) and a band of ``band_px`` around it (background) from ``gap_px`` out, in ``image``: a mask
-        off by a pixel or two then mixes little of one side into the other."""
+        off by a pixel or two then mixes little of one side into the other. ``within`` (H, W bool): only
+        these pixels are learnt from (where the mask is known)."""
         m8 = mask.astype(np.uint8)
         near = cv2.dilate(m8, np.ones((2 * gap_px + 1,) * 2, np.uint8)) > 0
         ring = (cv2.dilate(m8, np.ones((2 * band_px + 1,) * 2, np.uint8)) > 0) & ~near
         inner = cv2.erode(m8, np.ones((3, 3), np.uint8)) > 0
+        if within is not None:
+            ring &= within
+            inner &= within
         self.colors[group].update(image[inner], image[ring], rate)
 
     def measure(self, image: np.ndarray, contours: Mapping[str, Contour], model: PoseModel,

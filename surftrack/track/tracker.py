@@ -564,6 +564,8 @@ class Tracker:
         posed = {tr.spec.name: tr.kf.pose for tr in self.tracks if tr.has_pose}
         contours, masks = rt.contours(posed)
         for group, mask in masks.items():
+            if cfg.region_colors == "network" and rt.colors[group].ready:
+                continue  # learnt on keyframes (_learn_colors); the predicted silhouette only starts them
             # colours from the predicted silhouette, its edge left out (learn's margins): learning instead
             # from the line pixels next to each accepted outline (as ICG does) mixed the far side of thin
             # jaws into the foreground and held the seeded wrist of tests/test_track.py 8 deg off, not 2.4
@@ -603,6 +605,29 @@ class Tracker:
                     self._joints[key] = model.joint_state(model.solution)
             for tr in trs:
                 tr.info.region_ms = share + 1e3 * (time.perf_counter() - t1) / len(trs)
+
+    def _learn_colors(self, frame_rgb: np.ndarray, trs: Sequence[_Track], results: Sequence) -> None:
+        """Learn each instrument's colour models from the network's masks of its parts on a keyframe
+        (``region_colors`` "network"): a segmentation of the frame, so the silhouette's depth does not
+        repeat the track's (colours learnt at the predicted silhouette put its outline where the track's
+        depth error puts it). Pixels two instruments' masks both claim are learnt as neither."""
+        rt = self._region_tracker()
+        size = (frame_rgb.shape[1], frame_rgb.shape[0])
+        prob: dict[str, np.ndarray] = {}
+        seen: dict[str, np.ndarray] = {}
+        for tr, res in zip(trs, results):
+            if res.mask is None:
+                continue
+            p, covered = res.image_mask(size)
+            g = rt.groups[tr.spec.name]
+            prob[g] = np.maximum(prob[g], p) if g in prob else p
+            seen[g] = seen[g] | covered if g in seen else covered
+        fg = {g: p > 0.5 for g, p in prob.items()}
+        for g, mask in fg.items():
+            others = functools.reduce(np.logical_or, [m for h, m in fg.items() if h != g], np.zeros_like(mask))
+            colors = rt.colors[g]
+            rt.learn(frame_rgb, g, mask & ~others, rate=self.cfg.region_mask_rate if colors.ready else 1.0,
+                     within=seen[g] & ~others)
 
     def _measure_shared(self, frame_rgb: np.ndarray, contours: Mapping, key: str, trs: list[_Track]) -> None:
         """The region measurement of an instrument with one articulated state: one fit of the whole
@@ -823,13 +848,17 @@ class Tracker:
         t_est = time.perf_counter()
         groups = [tr.spec.instance for tr, _, _, _ in requests]
         boxes, priors = self._model_labels(requests)
+        network_colors = cfg.region and cfg.region_colors == "network"
         results = self.estimator.estimate(frame_rgb, [(tr.spec.obj_id, b) for (tr, _, _, _), b in zip(requests, boxes)],
-                                          K, priors=priors, groups=groups if cfg.twin_boxes else None)
+                                          K, priors=priors, groups=groups if cfg.twin_boxes else None,
+                                          masks=network_colors)
         if self._kinematic is not None:
             results = apply_kinematics(results, groups, self.estimator.model.parts, self._kinematic,
                                        self.instruments)
         results = self._nearer_twins(requests, results)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
+        if network_colors:
+            self._learn_colors(frame_rgb, [tr for tr, _, _, _ in requests], results)
         # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
         # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
         # behind the other tool (a tracked part's filter still gates it)
