@@ -348,7 +348,7 @@ def test_evaluate_seeds_shares_the_forward_and_matches_single_seed_runs(tiny):
     est = PoseEstimator(ckpt, "fast", device="cpu")
     calls = []
     forward = est._forward
-    est._forward = lambda crops: calls.append(len(crops)) or forward(crops)
+    est._forward = lambda crops, keep_masks=False: calls.append(len(crops)) or forward(crops, keep_masks)
     many = evaluate_seeds(est, root, [0, 5], split="train", max_images=2, kinematic=True)
     assert len(calls) == 1  # one batch of 2 images: one forward for both seeds
     poses = {}

@@ -312,3 +312,9 @@ def test_unwarp_image_carries_a_crop_back_into_the_frame():
     inner[32:88, 42:98] = True
     assert np.abs(back - img)[inner].max() < 0.02
     assert (back[~covered] == 0).all()
+    # where a crop pixel lands: crop pixel centre c comes from image pixel centre (c - M[:, 2]) / scale
+    dot = np.zeros((120, 120), np.float32)
+    dot[60, 60] = 1.0
+    back, _ = unwarp_image(dot, M, (160, 120))
+    v, u = np.unravel_index(np.argmax(back), back.shape)
+    assert abs(u - (60 - M[0, 2]) / M[0, 0]) <= 0.5 and abs(v - (60 - M[1, 2]) / M[1, 1]) <= 0.5

@@ -352,3 +352,7 @@ def test_the_network_masks_come_with_the_poses_when_asked(tiny_model):
         assert covered.sum() > 0 and (covered <= inside).all() and (prob[~near] == 0).all()
     with pytest.raises(ValueError, match="without its mask"):
         plain[0].image_mask((960, 540))
+    # with several crop views per box, the mask is the unshifted view's (the crop of crop_box)
+    views = PoseEstimator(tiny_model, PRESETS["fast"].replace(views=3), device="cpu", crop_size=64)
+    for a, b in zip(with_masks, views.estimate(img, BOXES, K_LND, masks=True)):
+        assert b.crop_box == a.crop_box and np.allclose(b.mask, a.mask, atol=1e-6)

@@ -2,7 +2,7 @@
 
 The one home of the package's geometry: :func:`transform_points` (poses on points),
 :func:`project_points` (pinhole projection), box conventions and conversions (:mod:`.boxes`) and crop
-warps (:func:`crop_affine`, :mod:`.crop`).
+warps (:func:`crop_affine`, :func:`crop_warp`, :mod:`.crop`: into a crop and, :func:`unwarp_image`, back).
 """
 
 from surftrack.geometry.boxes import Box, box_from_bop, square_crop_box, xywh_from_xyxy, xyxy_from_xywh

@@ -4,7 +4,8 @@ sees exactly the crop.
 Coordinates follow :mod:`surftrack.geometry.camera` and :mod:`surftrack.geometry.boxes`: pixel centres at
 integer coordinates, crop boxes (x0, y0, x1, y1) in pixel-EDGE coordinates (the full image is
 (0, 0, W, H)). :func:`surftrack.geometry.crop_affine` gives the warp of an upright crop and its camera;
-:func:`warp_image` applies a warp to an image, mask or id map.
+:func:`warp_image` applies a warp to an image, mask or id map; :func:`unwarp_image` carries a crop's
+per-pixel values back into the image.
 
 A crop rotated about its centre is an image warp that no pinhole K with the SAME camera frame can
 describe. It is described instead by rotating the camera frame about its optical axis:

@@ -55,8 +55,9 @@ class PartPose:
     reference view's plus ``views`` (crops solved) and ``views_merged`` (poses averaged). ``prior_won``:
     the prior handed in scored best (the reference view's; None without a prior); ``kinematic``: the
     pose is the instrument fit's (:func:`surftrack.pose.kinematic.apply_kinematics`), not this crop's own.
-    ``mask``: the network's foreground probability over the crop (S, S) float32 (the reference view's),
-    only where asked for (``masks=True``); :meth:`image_mask` puts it into the frame."""
+    ``mask``: the network's foreground probability over the crop (S, S) float32 (the unshifted view's, as
+    ``crop_box``; amodal where the model was trained so), only where asked for (``masks=True``);
+    :meth:`image_mask` puts it into the frame."""
 
     obj_id: int
     part: str
@@ -352,7 +353,7 @@ class PoseEstimator:
                                        warp_image(img, M, S), prior, len(offsets)))
         return crops, (time.perf_counter() - t0) * 1e3 / max(len(crops), 1)
 
-    def _solve_all(self, n_images: int, crops: list[_Crop], masks: torch.Tensor, queries: torch.Tensor,
+    def _solve_all(self, n_images: int, crops: list[_Crop], grids: torch.Tensor, queries: torch.Tensor,
                    crop_ms: float, fwd_ms: float, seed: int, probs: np.ndarray | None = None) -> list[list[PartPose]]:
         """Every crop's pose with solver seed ``seed``, grouped per image (with its crop's foreground
         probability ``probs[k]`` where given)."""
@@ -365,7 +366,7 @@ class PoseEstimator:
             s = 0
             while s < len(crops):  # each box's views are consecutive crops (see _crops)
                 n = crops[s].views
-                views = [self._solve(crops[k], masks[k], queries[k], crop_ms, fwd_ms, seed) for k in range(s, s + n)]
+                views = [self._solve(crops[k], grids[k], queries[k], crop_ms, fwd_ms, seed) for k in range(s, s + n)]
                 if probs is not None:
                     views[0] = dataclasses.replace(views[0], mask=probs[s])
                 results[crops[s].image_index].append(views[0] if n == 1 else self._merge(views))

@@ -363,6 +363,7 @@ class Tracker:
         self._floor = np.diag([self.cfg.flow_floor_mm**2] * 3 + [np.radians(self.cfg.flow_floor_deg)**2] * 3)
         self._region_floor = np.diag([self.cfg.region_floor_mm**2] * 3 + [np.radians(self.cfg.region_floor_deg)**2] * 3)
         self._region: RegionTracker | None = None
+        self._mask_colors: set[str] = set()  # instruments (region groups) the network's masks have taught colours
         self._region_specs = list(specs)
         self._joints: dict[str, JointState] = {}  # instrument key -> the joints its last accepted fit found
         self._set_poses: dict[str, tuple[float, dict]] = {}  # instrument key -> (time, poses given by set_pose)
@@ -388,6 +389,7 @@ class Tracker:
         if self._region is not None:
             self._region.release()
             self._region = None
+            self._mask_colors.clear()
 
     # ------------------------------------------------------------------ helpers
     def _pick_box(self, tr: _Track, boxes: Sequence[tuple[Box, float]], pbox: Box | None) -> Box | None:
@@ -606,16 +608,21 @@ class Tracker:
             for tr in trs:
                 tr.info.region_ms = share + 1e3 * (time.perf_counter() - t1) / len(trs)
 
-    def _learn_colors(self, frame_rgb: np.ndarray, trs: Sequence[_Track], results: Sequence) -> None:
+    def _learn_colors(self, frame_rgb: np.ndarray, estimated: Sequence[tuple[_Track, object]]) -> None:
         """Learn each instrument's colour models from the network's masks of its parts on a keyframe
-        (``region_colors`` "network"): a segmentation of the frame, so the silhouette's depth does not
-        repeat the track's (colours learnt at the predicted silhouette put its outline where the track's
-        depth error puts it). Pixels two instruments' masks both claim are learnt as neither."""
+        (``region_colors`` "network"; ``estimated``: (track, :class:`~surftrack.pose.PartPose` with its
+        mask) per crop of the keyframe): a segmentation independent of the track's pose, so
+        the silhouette's depth does not repeat the track's (colours learnt at the predicted silhouette put
+        its outline where the track's depth error puts it). The foreground is the union of the parts'
+        masks, the background a band around it where the crops saw the frame; the pixels another
+        instrument's masks claim are left out of both. The masks are the model's (amodal: an occluder's
+        pixels inside a part count as foreground), and a part of the instrument not estimated on this
+        frame lies in the background band where it touches the others."""
         rt = self._region_tracker()
         size = (frame_rgb.shape[1], frame_rgb.shape[0])
         prob: dict[str, np.ndarray] = {}
         seen: dict[str, np.ndarray] = {}
-        for tr, res in zip(trs, results):
+        for tr, res in estimated:
             if res.mask is None:
                 continue
             p, covered = res.image_mask(size)
@@ -625,9 +632,10 @@ class Tracker:
         fg = {g: p > 0.5 for g, p in prob.items()}
         for g, mask in fg.items():
             others = functools.reduce(np.logical_or, [m for h, m in fg.items() if h != g], np.zeros_like(mask))
-            colors = rt.colors[g]
-            rt.learn(frame_rgb, g, mask & ~others, rate=self.cfg.region_mask_rate if colors.ready else 1.0,
-                     within=seen[g] & ~others)
+            # the first masks replace what the predicted silhouette started
+            rate = self.cfg.region_mask_rate if g in self._mask_colors else 1.0
+            rt.learn(frame_rgb, g, mask & ~others, rate=rate, within=seen[g] & ~others)
+            self._mask_colors.add(g)
 
     def _measure_shared(self, frame_rgb: np.ndarray, contours: Mapping, key: str, trs: list[_Track]) -> None:
         """The region measurement of an instrument with one articulated state: one fit of the whole
@@ -857,14 +865,17 @@ class Tracker:
                                        self.instruments)
         results = self._nearer_twins(requests, results)
         est_ms = 1e3 * (time.perf_counter() - t_est) / len(requests)
-        if network_colors:
-            self._learn_colors(frame_rgb, [tr for tr, _, _, _ in requests], results)
         # a pose from the instrument fit (made only when its anchor was seen) is a measurement even where the
         # part's own estimate saw nothing: the wrist and jaws place a shaft cut by the image's edge or hidden
         # behind the other tool (a tracked part's filter still gates it)
         good_results = [res.ok and (res.kinematic or (res.n_inliers >= cfg.init_min_inliers
                                                       and res.score >= cfg.init_min_score))
                         for res in results]
+        if network_colors:
+            # every crop's mask, whatever its pose scored: the score judges the pose, not the segmentation
+            # (on the test clip's small parts, crops with 100-300 inliers score just below 0); a crop that
+            # shows no part has an empty mask
+            self._learn_colors(frame_rgb, [(tr, res) for (tr, _, _, _), res in zip(requests, results)])
         # with the kinematic fit, the poses of one instrument's parts on a keyframe come from one joint fit:
         # one measurement of its state, not one per part, so each part's share of it is that much weaker
         share = Counter(id(tr.kf.shared) for (tr, _, _, _), res, good in zip(requests, results, good_results)
