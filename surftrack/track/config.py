@@ -61,10 +61,12 @@ class TrackConfig:
     kinematics). Up to ``region_points`` contour points per part; a fit whose lines agree with its
     outline less than ``region_min_agreement`` (share of line pixels on the right side) is not used. The
     colour histograms (``region_colors``) are learnt on keyframes from the network's masks of the parts
-    ("network", at ``region_mask_rate`` per keyframe), or on every frame from the track's predicted
-    silhouette ("track", at ``region_learn_rate`` per frame); learnt at the track's pose, the silhouette's
-    depth repeated 60 % to all of the track's depth error; the network's masks scored +5.4 +- 2.1 points
-    of ADD-10 on 15 held-out runs, paths and speed error as before (docs/results/2026-12-05-network-colors.md).
+    ("network", at ``region_mask_rate`` per keyframe; before an instrument's first keyframe, e.g. a track
+    seeded by ``set_pose``, from its predicted silhouette at ``region_learn_rate``), or on every frame from
+    the track's predicted silhouette ("track", at ``region_learn_rate`` per frame). Learnt at the track's
+    pose, the silhouette's depth repeated 60 % to all of the track's depth error; with the network's masks
+    the tracks scored +5.4 +- 2.1 points of ADD-10 on 15 held-out runs, paths and speed error as before
+    (docs/results/2026-12-05-network-colors.md).
     The instrument's joints may move
     ``region_joint_std_deg`` per frame (the fit's prior). Only the pose directions the fit pins better
     than ``region_max_std_mm`` / ``region_max_std_deg`` are fused (a silhouette sees the lateral position,
