@@ -66,8 +66,7 @@ class TrackConfig:
     the track's predicted silhouette ("track", at ``region_learn_rate`` per frame). Learnt at the track's
     pose, the silhouette's depth repeated 60 % to all of the track's depth error; with the network's masks
     the tracks scored +5.4 +- 2.1 points of ADD-10 on 15 held-out runs, paths and speed error as before
-    (docs/results/2026-12-05-network-colors.md).
-    The instrument's joints may move
+    (docs/results/2026-12-05-network-colors.md). The instrument's joints may move
     ``region_joint_std_deg`` per frame (the fit's prior). Only the pose directions the fit pins better
     than ``region_max_std_mm`` / ``region_max_std_deg`` are fused (a silhouette sees the lateral position,
     not the depth), with ``region_floor_mm`` / ``region_floor_deg`` added. With a keyframe at least every

@@ -34,7 +34,7 @@ import trimesh
 from surftrack.eval import diameter_bbox_diagonal
 from surftrack.geometry import Box, project_points, rotation_angle_deg, se3, transform_points
 from surftrack.instruments import BUILTIN, HALF_TURN, Instrument, InstrumentRegistry, JointState, joints_from_poses
-from surftrack.pose import PoseEstimator
+from surftrack.pose import PartPose, PoseEstimator
 from surftrack.pose.kinematic import apply_kinematics, check_anchor, described_instrument, instrument_parts
 from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
@@ -608,7 +608,7 @@ class Tracker:
             for tr in trs:
                 tr.info.region_ms = share + 1e3 * (time.perf_counter() - t1) / len(trs)
 
-    def _learn_colors(self, frame_rgb: np.ndarray, estimated: Sequence[tuple[_Track, object]]) -> None:
+    def _learn_colors(self, frame_rgb: np.ndarray, estimated: Sequence[tuple[_Track, PartPose]]) -> None:
         """Learn each instrument's colour models from the network's masks of its parts on a keyframe
         (``region_colors`` "network"; ``estimated``: (track, :class:`~surftrack.pose.PartPose` with its
         mask) per crop of the keyframe): a segmentation independent of the track's pose, so
