@@ -23,7 +23,7 @@ demo: install
 	$(VENV)/bin/surftrack demo --out out/demo
 
 test: install
-	$(PY) -m pytest -q -m "not slow" -n 2
+	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadgroup
 
 test-slow: install
 	$(PY) -m pytest -q -m slow

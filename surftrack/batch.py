@@ -254,8 +254,10 @@ def run_batch(jobs: list[BatchJob], out_dir: str | Path, opts: AnnotateOptions |
         # keep the caller's (the CLI turns SIGTERM into a KeyboardInterrupt that cancels the videos).
         handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         if address is None:
-            ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
+            # "local": a cluster of our own; without it ray.init joins any cluster already running on the
+            # machine (another batch's), where num_cpus is refused
+            ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
+                     log_to_driver=False, configure_logging=False)
         else:
             ray.init(address=address, log_to_driver=False, configure_logging=False)
         if threading.current_thread() is threading.main_thread():

@@ -12,6 +12,9 @@ from mcap.reader import make_reader
 
 from surftrack.cli import EXIT_BATCH_INCOMPLETE, main
 
+# each test starts a local Ray of 2 CPUs: two at once on a 2-core machine time out starting up, so they
+# share one xdist worker (`make test` runs with --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("ray")
 
 def test_batch_skips_a_bad_video_and_reruns_nothing(clip, tiny_ckpt, tmp_path, capsys):
     videos, boxes = tmp_path / "videos", tmp_path / "boxes"
