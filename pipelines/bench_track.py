@@ -12,8 +12,8 @@ a second tool (``surftrack synth-clip``), keeps the boxes of the chosen parts, t
 1. runs the tracker causally (the main command's code path with ``--causal``, MCAP to a temporary file):
    end-to-end frames/s (decode, tracking, MCAP), the tracked-frame cost per part, estimator calls;
 2. smooths that run's filter states exactly as the default run does (:class:`LagSmoother` with the
-   config's ``smooth_lag_s``) and adds the smoothing time to the causal run's to give the default's
-   frames/s (the tracking itself is the same computation);
+   config's ``smooth_lag_s`` and smoother prior) and adds the smoothing time to the causal run's to give
+   the default's frames/s (the tracking itself is the same computation);
 3. runs the estimator on every frame with the same boxes (no temporal model; the same instrument-level
    kinematic fit unless ``--no-kinematic``);
 4. prints the three against the ground truth (:mod:`surftrack.track.clip_eval`): ADD-10 (SurgRIPE
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         fps = json.loads((clip / "gt.json").read_text()).get("fps") or args.fps
         causal, smoothed = TrackScore(gt, instruments=tools), TrackScore(gt, instruments=tools)
         tracked_ms, est_calls, kinds, restarts = {}, Counter(), Counter(), Counter()
-        smoother = LagSmoother(round(cfg.smooth_lag_s * fps))
+        smoother = LagSmoother(round(cfg.smooth_lag_s * fps), prior=cfg.smoother_prior())
         smooth_s = 0.0
 
         def score_smoothed(ready):

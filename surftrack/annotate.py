@@ -382,7 +382,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     on_frame(index, t_s, states)
 
         # frames wait here until the smoother has seen enough of their future (none when causal)
-        smoother = LagSmoother(round(opts.config.smooth_lag_s * info.fps))
+        smoother = LagSmoother(round(opts.config.smooth_lag_s * info.fps), prior=opts.config.smoother_prior())
         wall0 = time.perf_counter()
         index, read_to_end, partial = -1, False, None
 

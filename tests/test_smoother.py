@@ -1,14 +1,15 @@
 """The error-state RTS smoother against filterpy's linear RTS and a brute-force batch solution, on
-rotations, and as a fixed-lag stream."""
+rotations, and as a fixed-lag stream; the smoother's own motion prior against a filter run under it."""
 
 import dataclasses
 
 import numpy as np
+import pytest
 from filterpy.kalman import KalmanFilter
 
 from surftrack.geometry import rotation_angle_deg, so3_exp
 from surftrack.track.kalman import KalmanConfig, PoseKalman, _block_q, refilter
-from surftrack.track.smoother import LagSmoother, rts_smooth
+from surftrack.track.smoother import LagSmoother, SmootherPrior, refilter_under, rts_smooth
 
 DT = 1 / 30
 CFG = KalmanConfig(accel_std_mm_s2=50.0, ang_accel_std_rad_s2=2.0)
@@ -173,3 +174,94 @@ def test_a_revision_replaces_the_buffered_steps_and_starts_where_the_buffer_does
     assert all(np.linalg.norm(by[k].x[0:3] - truth[k]) < 8.0 for k in range(11))
     assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(11, 16))
     assert by[11].prior is None and all(by[k].prior is not None for k in range(12, 16))
+
+
+# the smoother's own prior: stiffer along the line of sight (the runs above look along +z from near the axis)
+PRIOR = SmootherPrior(CFG.accel_std_mm_s2, 80.0, 10.0)
+
+
+def test_refiltering_under_the_filters_own_prior_changes_nothing():
+    _, _, steps = _translation_run(n=30)
+    same = refilter_under(steps, SmootherPrior(CFG.accel_std_mm_s2, CFG.accel_std_mm_s2, CFG.accel_std_mm_s2))
+    np.testing.assert_allclose([s.x for s in same], [s.x for s in steps], atol=1e-7)
+    np.testing.assert_allclose([s.P for s in same], [s.P for s in steps], rtol=1e-6, atol=1e-8)
+
+
+def test_refiltering_matches_a_filter_run_under_the_other_prior():
+    """The measurement information recovered from the filter's prediction and posterior, fused under the
+    smoother's prior, is a linear Kalman filter run under that prior (per-step process noise turned to
+    the line of sight through the filter's predicted position), and smoothing it is that filter's RTS."""
+    _, meas, steps = _translation_run(n=25, seed=2)
+    ours = refilter_under(steps, PRIOR)
+    F, Q, H, P0 = _linear_model()
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    kf.F, kf.H, kf.R = F, H, MEAS_COV[:3, :3]
+    kf.x, kf.P = np.r_[meas[0], np.zeros(3)].reshape(6, 1), P0
+    xs, ps, qs = [kf.x.ravel().copy()], [kf.P.copy()], [Q]
+    for step, z in zip(steps[1:], meas[1:]):
+        Qk = Q + PRIOR.position_q_change(step.prior.x[0:3], DT)
+        kf.predict(Q=Qk)
+        kf.update(z.reshape(3, 1))
+        xs.append(kf.x.ravel().copy())
+        ps.append(kf.P.copy())
+        qs.append(Qk)
+    np.testing.assert_allclose([s.x[0:6] for s in ours], xs, atol=1e-6)
+    np.testing.assert_allclose([s.P[0:6, 0:6] for s in ours], ps, rtol=1e-6, atol=1e-8)
+    xs_s, ps_s, _, _ = kf.rts_smoother(np.array(xs)[:, :, None], np.array(ps), Qs=np.array(qs))  # Qs[k]: into frame k
+    np.testing.assert_allclose([s.x[0:6] for s in rts_smooth(ours)], xs_s[:, :, 0], atol=1e-6)
+
+
+def test_a_stiffer_depth_prior_keeps_the_depth_noise_out_of_the_path():
+    """Depth measured ten times worse than the image position (as the estimator does): under the
+    smoother's prior the smoothed depth wanders less while the lateral motion is kept."""
+    rng = np.random.default_rng(4)
+    n = 90
+    truth = np.array([[-15 + 20 * k * DT, 3 * np.sin(k / 10), 80.0] for k in range(n)])
+    meas = truth + rng.normal(0, [0.3, 0.3, 3.0], (n, 3))
+    cov = np.diag([0.09, 0.09, 9.0, 1e-4, 1e-4, 1e-4])
+    kf, steps = PoseKalman(CFG), []
+    for k in range(n):
+        if k == 0:
+            kf.init(np.eye(3), meas[0], 0.0, cov)
+        else:
+            kf.predict(k * DT)
+            kf.update(np.eye(3), meas[k], cov, gate=False)
+        steps.append(kf.snapshot())
+
+    def paths(sm):
+        d = np.diff([s.x[0:3] for s in sm], axis=0)
+        return np.abs(d[:, 2]).sum(), np.linalg.norm(d[:, 0:2], axis=1).sum()
+
+    depth_own, lateral_own = paths(rts_smooth(steps))
+    depth_prior, lateral_prior = paths(rts_smooth(refilter_under(steps, PRIOR)))
+    lateral_true = np.linalg.norm(np.diff(truth[:, 0:2], axis=0), axis=1).sum()
+    assert depth_prior < 0.5 * depth_own, (depth_prior, depth_own)
+    assert abs(lateral_prior / lateral_true - 1) < 0.05 and abs(lateral_own / lateral_true - 1) < 0.05
+
+
+def test_lag_smoother_with_its_own_prior_streams_the_refiltered_run():
+    _, _, steps = _translation_run(n=60, seed=5)
+    full = rts_smooth(refilter_under(steps, PRIOR))
+    sm, got = LagSmoother(lag=20, chunk=5, prior=PRIOR), []
+    for k, s in enumerate(steps):
+        got += sm.push(k, {"p": s})
+    got += sm.flush()
+    assert [i for i, _ in got] == list(range(60))
+    # a stiffer prior reaches further than the lag: the released frames miss a little of the later data
+    assert max(np.linalg.norm(st["p"].x[0:3] - f.x[0:3]) for (_, st), f in zip(got, full)) < 0.6
+    # the buffer is re-filtered from the last released frame's re-filtered state: the same run as a whole
+    assert all(np.allclose(st["p"].x, f.x) for (_, st), f in zip(got[35:], full[35:]))
+
+
+def test_the_tracking_config_names_the_smoothers_prior():
+    from surftrack.track import TrackConfig
+
+    cfg = TrackConfig()
+    prior = cfg.smoother_prior()
+    assert prior == SmootherPrior(cfg.kalman.accel_std_mm_s2, cfg.smooth_lateral_accel_std_mm_s2,
+                                  cfg.smooth_depth_accel_std_mm_s2)
+    a = cfg.kalman.accel_std_mm_s2
+    assert cfg.replace(smooth_lateral_accel_std_mm_s2=a, smooth_depth_accel_std_mm_s2=a).smoother_prior() is None
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(ValueError, match="smooth_depth_accel_std_mm_s2 must be > 0"):
+            TrackConfig(smooth_depth_accel_std_mm_s2=bad)

@@ -12,6 +12,7 @@ from surftrack.configio import build_dataclass, read_config_yaml
 from surftrack.pose.kinematic import KinematicConfig
 from surftrack.pose.preset import PRESETS, Preset
 from surftrack.track.kalman import KalmanConfig
+from surftrack.track.smoother import SmootherPrior
 
 # where the silhouette measurement's colour models are learnt from (TrackConfig.region_colors)
 REGION_COLORS = ("network", "track")
@@ -101,6 +102,14 @@ class TrackConfig:
     ``smooth_lag_s``: offline smoothing: each frame's pose is written once this many seconds of later
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
+    ``smooth_lateral_accel_std_mm_s2``, ``smooth_depth_accel_std_mm_s2``: the smoother's own white-noise
+    acceleration of each part's position across and along its line of sight (mm/s^2; the filter's is
+    ``kalman.accel_std_mm_s2`` either way, :class:`~surftrack.track.smoother.SmootherPrior`). The
+    estimator's depth errs by 2-3 mm, correlated over many frames, its image position by 0.2 mm, so
+    the smoother believes the depth's changes less: 10 along the line of sight (60 across) brought
+    the median speed error on held-out clips from 26 to 20 % for about a point of ADD-10
+    (docs/results/2026-12-06-smoother-depth-prior.md); the filter's own prior stays isotropic, because
+    a stiff one there lags the moves its gate then refuses (docs/decisions.md).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
@@ -184,6 +193,8 @@ class TrackConfig:
     init_min_inliers: int = 6
     init_min_score: float = 0.0
     smooth_lag_s: float = 1.0
+    smooth_lateral_accel_std_mm_s2: float = 120.0
+    smooth_depth_accel_std_mm_s2: float = 10.0
     retro_restart: bool = True
     confidence_add: float = 0.1
     confidence_scale: float = 1.5
@@ -240,7 +251,8 @@ class TrackConfig:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg",
                      "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm",
-                     "region_max_std_deg", "joint_accel_std_rad_s2"):
+                     "region_max_std_deg", "joint_accel_std_rad_s2", "smooth_lateral_accel_std_mm_s2",
+                     "smooth_depth_accel_std_mm_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm",
@@ -261,6 +273,13 @@ class TrackConfig:
             return None
         return KinematicConfig(self.kinematic_anchor, self.kinematic_anchor_weight,
                                anchor_translation_weight=self.kinematic_anchor_translation_weight)
+
+    def smoother_prior(self) -> SmootherPrior | None:
+        """The smoother's motion prior, or None where it is the filter's own."""
+        a = self.kalman.accel_std_mm_s2
+        if self.smooth_lateral_accel_std_mm_s2 == a and self.smooth_depth_accel_std_mm_s2 == a:
+            return None
+        return SmootherPrior(a, self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2)
 
     def for_fps(self, fps: float) -> TrackConfig:
         """This config for a video at ``fps`` frames/s: ``keyframe_every`` lowered to ``keyframe_max_s``

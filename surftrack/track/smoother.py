@@ -16,6 +16,15 @@ constant-velocity model a second of future holds nearly all the information a fu
 memory stays flat in the video's length. ``lag = 0`` passes frames through unchanged (causal). A step
 that ``revises`` earlier frames (a track restarted in hindsight) replaces their buffered steps before the
 next pass; frames already released keep what was written.
+
+The smoother may assume another motion prior than the filter (:class:`SmootherPrior`): the filter's prior
+serves its gate and keyframe decisions, where a stiff one lags real moves and refuses the keyframes that
+follow them; the smoother only decides how far to believe each frame's measurements, and the
+estimator's depth is the one that errs (2-3 mm along the line of sight, correlated over many frames,
+against 0.2 mm across it), so a stiffer prior along the line of sight keeps its wander out of the speeds
+and paths (docs/decisions.md, "A stiffer motion prior along the line of sight in the smoother"). The
+filter is then run again under that prior (:func:`refilter_under`), with each frame's measurement
+information recovered from the filter's own prediction and posterior, and smoothed.
 """
 
 from __future__ import annotations
@@ -26,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.track.kalman import FilterStep, change_chart, inject_rotation
+from surftrack.track.kalman import FilterPrior, FilterStep, change_chart, inject_rotation
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -48,6 +57,81 @@ def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class SmootherPrior:
+    """The smoother's white-noise acceleration of a part's position, split across
+    (``lateral_accel_std_mm_s2``) and along (``depth_accel_std_mm_s2``) the line of sight through it, in
+    place of the filter's isotropic ``filter_accel_std_mm_s2`` (all mm/s^2). Rotation keeps the filter's."""
+
+    filter_accel_std_mm_s2: float
+    lateral_accel_std_mm_s2: float
+    depth_accel_std_mm_s2: float
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{f.name} must be > 0, got {v!r}")
+
+    def position_q_change(self, direction: np.ndarray, dt: float) -> np.ndarray:
+        """(6, 6): what this prior adds to the filter's process noise of ``[t, v]`` (mm, mm/s) over ``dt``
+        s for a part seen along ``direction`` (3,) from the camera."""
+        u = np.asarray(direction, np.float64)
+        u = u / max(float(np.linalg.norm(u)), 1e-9)
+        uu = np.outer(u, u)
+        q0 = self.filter_accel_std_mm_s2**2
+        M = (self.lateral_accel_std_mm_s2**2 - q0) * (np.eye(3) - uu) + (self.depth_accel_std_mm_s2**2 - q0) * uu
+        return np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), M)
+
+
+def _sym_inv(P: np.ndarray) -> np.ndarray:
+    M = np.linalg.inv(P)
+    return 0.5 * (M + M.T)
+
+
+def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
+                   before: tuple[FilterStep, FilterStep] | None = None) -> list[FilterStep | None]:
+    """One part's filtered steps (consecutive frames, None where it has no pose) as the filter would have
+    given them under the smoother's ``prior``. Each frame's measurement information (everything it
+    fused: keyframe, silhouette, flow) is the filter's posterior information less its prediction's, in
+    the prediction's chart; the prediction is re-made about the same nominal trajectory (the filter's
+    transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` added, and any
+    restart widening as it was) and the information fused into it. A segment start (no ``prior``) and
+    a state that is not a part's 12-vector (an instrument's articulated state) are kept as they are.
+    ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
+    re-filtered steps stay in the filter's nominal rotations (their error state carries the rotation
+    difference); their ``prior`` is the re-made prediction, for :func:`rts_smooth`."""
+    out: list[FilterStep | None] = []
+    prev = before
+    for step in steps:
+        if step is None:
+            out.append(None)
+            prev = None
+            continue
+        if step.prior is None or prev is None or step.x.shape != (12,):
+            out.append(step)
+            prev = (step, step)
+            continue
+        old, new = prev
+        pr = step.prior
+        F = pr.F
+        # the filter's process noise (and a restart's widening) as it entered this prediction
+        Q = pr.P - F @ old.P @ F.T
+        Q[0:6, 0:6] += prior.position_q_change(pr.x[0:3], step.time - old.time)
+        P_pred = F @ new.P @ F.T + Q
+        P_pred = 0.5 * (P_pred + P_pred.T)
+        x_pred = pr.x + F @ (new.x - old.x)
+        x_post, P_post = change_chart(step.R, step.x, step.P, pr.R)
+        info_post, info_pr, info_pred = _sym_inv(P_post), _sym_inv(pr.P), _sym_inv(P_pred)
+        P = _sym_inv(info_pred + info_post - info_pr)
+        x = P @ (info_pred @ x_pred + info_post @ x_post - info_pr @ pr.x)
+        x, P = change_chart(pr.R, x, P, step.R)
+        fresh = FilterStep(step.time, step.R, x, P, FilterPrior(F, pr.R, x_pred, P_pred), revised=step.revised)
+        out.append(fresh)
+        prev = (step, fresh)
+    return out
+
+
 class LagSmoother:
     """Fixed-lag smoothing of a stream of frames. ``push(item, steps)`` adds a frame: ``item`` is
     anything the caller wants back (the frame, its states), ``steps`` maps a key (a part's name) to its
@@ -55,14 +139,18 @@ class LagSmoother:
     ``(item, smoothed steps)``; :meth:`flush` returns the rest at the end of a run (or when it stops).
     A frame is released once ``lag`` newer frames exist; the backward pass runs every ``chunk`` frames
     over the buffer (``lag + chunk`` frames at most), so each frame costs about ``(lag + chunk) / chunk``
-    backward steps per part."""
+    backward steps per part. ``prior``: the smoother's own motion prior (:class:`SmootherPrior`; None:
+    the filter's); the filter is run again under it over the buffer, continuing from the last released
+    frame's re-filtered step."""
 
-    def __init__(self, lag: int, chunk: int | None = None):
+    def __init__(self, lag: int, chunk: int | None = None, prior: SmootherPrior | None = None):
         if lag < 0:
             raise ValueError(f"lag must be >= 0 frames, got {lag}")
         self.lag = int(lag)
         self.chunk = max(1, self.lag // 4) if chunk is None else max(1, int(chunk))
         self._buf: list[tuple[Any, dict[str, FilterStep | None]]] = []
+        self.prior = prior
+        self._before: dict[str, tuple[FilterStep, FilterStep]] = {}  # the last released frame's (filtered, re-filtered)
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -99,7 +187,18 @@ class LagSmoother:
         if n <= 0:
             return []
         keys = list(dict.fromkeys(k for _, st in self._buf for k in st))
-        smoothed = {k: rts_smooth([st.get(k) for _, st in self._buf]) for k in keys} if self.lag else {}
+        smoothed = {}
+        if self.lag:
+            for k in keys:
+                steps = [st.get(k) for _, st in self._buf]
+                if self.prior is not None:
+                    fresh = refilter_under(steps, self.prior, self._before.get(k))
+                    if steps[n - 1] is not None:
+                        self._before[k] = (steps[n - 1], fresh[n - 1])
+                    else:
+                        self._before.pop(k, None)
+                    steps = fresh
+                smoothed[k] = rts_smooth(steps)
         out = []
         for i, (item, st) in enumerate(self._buf[:n]):
             out.append((item, {k: smoothed[k][i] for k in st} if self.lag else st))
