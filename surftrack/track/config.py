@@ -103,13 +103,13 @@ class TrackConfig:
     frames have been filtered, smoothed backward from them (:mod:`surftrack.track.smoother`; the run's
     memory holds that many frames); 0 writes the causal filter's poses as they come (``--causal``).
     ``smooth_lateral_accel_std_mm_s2``, ``smooth_depth_accel_std_mm_s2``: the smoother's own white-noise
-    acceleration of each part's position across and along its line of sight (mm/s^2; the filter's is
-    ``kalman.accel_std_mm_s2`` either way, :class:`~surftrack.track.smoother.SmootherPrior`). The
-    estimator's depth errs by 2-3 mm, correlated over many frames, its image position by 0.2 mm, so
-    the smoother believes the depth's changes less: 10 along the line of sight (60 across) brought
-    the median speed error on held-out clips from 26 to 20 % for about a point of ADD-10
-    (docs/results/2026-12-06-smoother-depth-prior.md); the filter's own prior stays isotropic, because
-    a stiff one there lags the moves its gate then refuses (docs/decisions.md).
+    acceleration of each part's position across and along its line of sight (mm/s^2;
+    :class:`~surftrack.track.smoother.SmootherPrior`); the filter keeps ``kalman.accel_std_mm_s2`` in every
+    direction, because a stiff prior there lags the moves its gate then refuses (docs/decisions.md). The
+    estimator's depth errs by 2-3 mm, correlated over many frames, its image position by 0.2 mm: the
+    smoother believes depth changes less and lateral moves more. 10 / 120 against the filter's 30: on
+    ten fresh runs (clips 76-80) the median speed error 26 -> 20 %, ADD-10 -0.2 +- 0.5 points
+    (docs/results/2026-12-06-smoother-prior.md).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,

@@ -22,9 +22,9 @@ serves its gate and keyframe decisions, where a stiff one lags real moves and re
 follow them; the smoother only decides how far to believe each frame's measurements, and the
 estimator's depth is the one that errs (2-3 mm along the line of sight, correlated over many frames,
 against 0.2 mm across it), so a stiffer prior along the line of sight keeps its wander out of the speeds
-and paths (docs/decisions.md, "A stiffer motion prior along the line of sight in the smoother"). The
-filter is then run again under that prior (:func:`refilter_under`), with each frame's measurement
-information recovered from the filter's own prediction and posterior, and smoothed.
+and paths (docs/results/2026-12-06-smoother-prior.md). The filter is then run again under that prior
+(:func:`refilter_under`), with each frame's measurement information recovered from the filter's own
+prediction and posterior, and smoothed.
 """
 
 from __future__ import annotations
@@ -151,6 +151,7 @@ class LagSmoother:
         self._buf: list[tuple[Any, dict[str, FilterStep | None]]] = []
         self.prior = prior
         self._before: dict[str, tuple[FilterStep, FilterStep]] = {}  # the last released frame's (filtered, re-filtered)
+        self._fresh: list[dict[str, FilterStep | None]] = []  # re-filtered steps of the buffered frames, by key
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -162,6 +163,7 @@ class LagSmoother:
                 self._revise(key, step.revises)
                 steps[key] = dataclasses.replace(step, revises=())  # done with: not kept, and not the causal step
         self._buf.append((item, steps))
+        self._fresh.append({})
         if len(self._buf) < self.lag + self.chunk:
             return []
         return self._release(len(self._buf) - self.lag)
@@ -172,13 +174,15 @@ class LagSmoother:
         starts a segment: the revised run does not continue what was written."""
         by_time = {r.time: r for r in revised}
         first = True
-        for _, st in self._buf:
+        for (_, st), fresh in zip(self._buf, self._fresh):
             old = st.get(key)
             if old is not None and old.time in by_time:
                 new = by_time[old.time]
                 if first and new.time != revised[0].time:
                     new = dataclasses.replace(new, prior=None)
                 st[key], first = new, False
+            if not first:  # re-filtered again from the first revised frame on
+                fresh.pop(key, None)
 
     def flush(self) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         return self._release(len(self._buf))
@@ -192,17 +196,33 @@ class LagSmoother:
             for k in keys:
                 steps = [st.get(k) for _, st in self._buf]
                 if self.prior is not None:
-                    fresh = refilter_under(steps, self.prior, self._before.get(k))
-                    if steps[n - 1] is not None:
-                        self._before[k] = (steps[n - 1], fresh[n - 1])
-                    else:
-                        self._before.pop(k, None)
-                    steps = fresh
+                    steps = self._refiltered(k, steps)
                 smoothed[k] = rts_smooth(steps)
         out = []
         for i, (item, st) in enumerate(self._buf[:n]):
             out.append((item, {k: smoothed[k][i] for k in st} if self.lag else st))
+        for k in keys:
+            last = self._fresh[n - 1].get(k)
+            if self.prior is not None and last is not None:
+                self._before[k] = (self._buf[n - 1][1][k], last)
+            else:
+                self._before.pop(k, None)
         # the released frames' successors keep their filtered steps: the next pass smooths them again from
         # newer data, and only needs the filtered state of each frame
         del self._buf[:n]
+        del self._fresh[:n]
         return out
+
+    def _refiltered(self, key: str, steps: list[FilterStep | None]) -> list[FilterStep | None]:
+        """``key``'s buffered ``steps`` re-filtered under the smoother's prior: from the first frame not
+        re-filtered yet (new, or revised), continuing the frame before it."""
+        start = next((i for i, fresh in enumerate(self._fresh) if key not in fresh), len(steps))
+        if start < len(steps):
+            if start == 0:
+                before = self._before.get(key)
+            else:
+                prev = self._fresh[start - 1][key]
+                before = (steps[start - 1], prev) if prev is not None else None
+            for fresh, step in zip(self._fresh[start:], refilter_under(steps[start:], self.prior, before)):
+                fresh[key] = step
+        return [fresh[key] for fresh in self._fresh]
