@@ -253,6 +253,25 @@ def test_lag_smoother_with_its_own_prior_streams_the_refiltered_run():
     assert all(np.allclose(st["p"].x, f.x) for (_, st), f in zip(got[35:], full[35:]))
 
 
+def test_a_revision_is_refiltered_under_the_smoothers_prior():
+    """The re-filtered steps are kept between passes; a revision has its frames re-filtered again (from
+    the first revised frame still buffered, which starts a segment)."""
+    truth, meas, steps = _translation_run(n=20)
+    shifted = [(s.time, (np.eye(3), m + np.array([30.0, 0, 0]), MEAS_COV)) for s, m in zip(steps[8:16], meas[8:16])]
+    kf, revised = refilter(CFG, shifted, last_ungated=True)
+    sm, got = LagSmoother(lag=4, chunk=1, prior=PRIOR), []
+    for k in range(15):
+        got += sm.push(k, {"p": steps[k]})
+    got += sm.push(15, {"p": dataclasses.replace(kf.snapshot(), revises=tuple(revised[:-1]))})
+    got += sm.flush()
+    by = {i: st["p"] for i, st in got}
+    seen = [dataclasses.replace(revised[3], prior=None)] + list(revised[4:-1]) + [kf.snapshot()]
+    want = rts_smooth(refilter_under(seen, PRIOR))
+    for k, w in zip(range(11, 16), want):
+        np.testing.assert_allclose(by[k].x, w.x, atol=1e-9)
+    assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(11, 16))
+
+
 def test_the_tracking_config_names_the_smoothers_prior():
     from surftrack.track import TrackConfig
 
