@@ -211,6 +211,34 @@ def test_refiltering_matches_a_filter_run_under_the_other_prior():
     np.testing.assert_allclose([s.x[0:6] for s in rts_smooth(ours)], xs_s[:, :, 0], atol=1e-6)
 
 
+def test_refiltering_through_a_restart_and_a_coast_matches_the_filter_under_that_prior():
+    """With the same prior in every direction the smoother's prior is a filter's own: re-filtering a run
+    with a restart (widened, pose cut loose from the rates) and unmeasured frames (coasting velocities)
+    gives what a filter run under it gives."""
+    _, meas, _ = _translation_run(n=25, seed=6)
+    widen = np.diag([400.0] * 3 + [0.1] * 3)
+
+    def run(cfg):
+        kf, steps = PoseKalman(cfg), []
+        for k in range(25):
+            if k == 0:
+                kf.init(np.eye(3), meas[0], 0.0, MEAS_COV)
+            else:
+                kf.predict(k * DT, coast=k in (17, 18, 19))
+                if k == 12:
+                    kf.restart(np.eye(3), meas[k] + [20.0, 0, 0], MEAS_COV, widen)
+                elif k not in (16, 17, 18):
+                    kf.update(np.eye(3), meas[k] + (k > 12) * np.array([20.0, 0, 0]), MEAS_COV, gate=False)
+            steps.append(kf.snapshot())
+        return steps
+
+    looser = dataclasses.replace(CFG, accel_std_mm_s2=80.0)
+    ours = refilter_under(run(CFG), SmootherPrior(CFG.accel_std_mm_s2, 80.0, 80.0))
+    want = run(looser)
+    np.testing.assert_allclose([s.x for s in ours], [s.x for s in want], atol=1e-6)
+    np.testing.assert_allclose([s.P for s in ours], [s.P for s in want], rtol=1e-6, atol=1e-6)
+
+
 def test_a_stiffer_depth_prior_keeps_the_depth_noise_out_of_the_path():
     """Depth measured ten times worse than the image position (as the estimator does): under the
     smoother's prior the smoothed depth wanders less while the lateral motion is kept."""

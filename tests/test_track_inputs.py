@@ -202,6 +202,7 @@ def test_boxes_past_the_last_frame_get_a_note(clip, tiny_ckpt, tmp_path, capsys)
     assert f"boxes for 1 frame(s) after the video's last frame ({n - 1}), from {n}" in out, out
 
 
+@pytest.mark.xdist_group("ray")  # a folder of videos is a batch on a local Ray (see tests/test_batch.py)
 def test_camera_found_beside_the_video_and_folder_of_videos(clip, tiny_ckpt, tmp_path, capsys):
     vids, boxes = tmp_path / "videos", tmp_path / "boxes"
     vids.mkdir()

@@ -109,7 +109,8 @@ class TrackConfig:
     estimator's depth errs by 2-3 mm, correlated over many frames, its image position by 0.2 mm: the
     smoother believes depth changes less and lateral moves more. 10 / 120 against the filter's 30: on
     ten fresh runs (clips 76-80) the median speed error 26 -> 20 %, ADD-10 -0.2 +- 0.5 points
-    (docs/results/2026-12-06-smoother-prior.md).
+    (docs/results/2026-12-06-smoother-prior.md). Not used with ``articulated``; ``every_frame.yaml``
+    keeps the filter's (30 / 30: not measured with the estimator on every frame).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
@@ -275,9 +276,10 @@ class TrackConfig:
                                anchor_translation_weight=self.kinematic_anchor_translation_weight)
 
     def smoother_prior(self) -> SmootherPrior | None:
-        """The smoother's motion prior, or None where it is the filter's own."""
+        """The smoother's motion prior, or None where it is the filter's own (always with ``articulated``:
+        an instrument's state is not a part's pose, and its smoothing was not measured with another)."""
         a = self.kalman.accel_std_mm_s2
-        if self.smooth_lateral_accel_std_mm_s2 == a and self.smooth_depth_accel_std_mm_s2 == a:
+        if self.articulated or (self.smooth_lateral_accel_std_mm_s2 == a and self.smooth_depth_accel_std_mm_s2 == a):
             return None
         return SmootherPrior(a, self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2)
 

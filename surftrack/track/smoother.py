@@ -84,6 +84,9 @@ class SmootherPrior:
         return np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), M)
 
 
+_POSE, _RATES = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+
+
 def _sym_inv(P: np.ndarray) -> np.ndarray:
     M = np.linalg.inv(P)
     return 0.5 * (M + M.T)
@@ -95,12 +98,13 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
     given them under the smoother's ``prior``. Each frame's measurement information (everything it
     fused: keyframe, silhouette, flow) is the filter's posterior information less its prediction's, in
     the prediction's chart; the prediction is re-made about the same nominal trajectory (the filter's
-    transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` added, and any
-    restart widening as it was) and the information fused into it. A segment start (no ``prior``) and
+    transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` added, a restart's
+    widening and cut between pose and rates as the filter made them) and the information fused into it. A segment start (no ``prior``) and
     a state that is not a part's 12-vector (an instrument's articulated state) are kept as they are.
     ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
-    re-filtered steps stay in the filter's nominal rotations (their error state carries the rotation
-    difference); their ``prior`` is the re-made prediction, for :func:`rts_smooth`."""
+    re-filtered steps stay in the filter's nominal rotations, so unlike a filter's their ``dtheta`` is not
+    0 (it carries the rotation difference; :attr:`FilterStep.pose` includes it); their ``prior`` is the
+    re-made prediction, for :func:`rts_smooth`."""
     out: list[FilterStep | None] = []
     prev = before
     for step in steps:
@@ -119,6 +123,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
         Q = pr.P - F @ old.P @ F.T
         Q[0:6, 0:6] += prior.position_q_change(pr.x[0:3], step.time - old.time)
         P_pred = F @ new.P @ F.T + Q
+        if not pr.P[np.ix_(_POSE, _RATES)].any():  # a restart cut the pose loose from the rates: so here
+            P_pred[np.ix_(_POSE, _RATES)] = 0.0
+            P_pred[np.ix_(_RATES, _POSE)] = 0.0
         P_pred = 0.5 * (P_pred + P_pred.T)
         x_pred = pr.x + F @ (new.x - old.x)
         x_post, P_post = change_chart(step.R, step.x, step.P, pr.R)
@@ -148,10 +155,10 @@ class LagSmoother:
             raise ValueError(f"lag must be >= 0 frames, got {lag}")
         self.lag = int(lag)
         self.chunk = max(1, self.lag // 4) if chunk is None else max(1, int(chunk))
-        self._buf: list[tuple[Any, dict[str, FilterStep | None]]] = []
+        # per buffered frame: the caller's item, its filtered steps and (with a prior) its re-filtered ones
+        self._buf: list[tuple[Any, dict[str, FilterStep | None], dict[str, FilterStep | None]]] = []
         self.prior = prior
         self._before: dict[str, tuple[FilterStep, FilterStep]] = {}  # the last released frame's (filtered, re-filtered)
-        self._fresh: list[dict[str, FilterStep | None]] = []  # re-filtered steps of the buffered frames, by key
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -162,8 +169,7 @@ class LagSmoother:
             if step is not None and step.revises and self.lag:
                 self._revise(key, step.revises)
                 steps[key] = dataclasses.replace(step, revises=())  # done with: not kept, and not the causal step
-        self._buf.append((item, steps))
-        self._fresh.append({})
+        self._buf.append((item, steps, {}))
         if len(self._buf) < self.lag + self.chunk:
             return []
         return self._release(len(self._buf) - self.lag)
@@ -174,7 +180,7 @@ class LagSmoother:
         starts a segment: the revised run does not continue what was written."""
         by_time = {r.time: r for r in revised}
         first = True
-        for (_, st), fresh in zip(self._buf, self._fresh):
+        for _, st, fresh in self._buf:
             old = st.get(key)
             if old is not None and old.time in by_time:
                 new = by_time[old.time]
@@ -190,39 +196,35 @@ class LagSmoother:
     def _release(self, n: int) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         if n <= 0:
             return []
-        keys = list(dict.fromkeys(k for _, st in self._buf for k in st))
+        keys = list(dict.fromkeys(k for _, st, _ in self._buf for k in st))
         smoothed = {}
         if self.lag:
             for k in keys:
-                steps = [st.get(k) for _, st in self._buf]
+                steps = [st.get(k) for _, st, _ in self._buf]
                 if self.prior is not None:
                     steps = self._refiltered(k, steps)
                 smoothed[k] = rts_smooth(steps)
         out = []
-        for i, (item, st) in enumerate(self._buf[:n]):
+        for i, (item, st, _) in enumerate(self._buf[:n]):
             out.append((item, {k: smoothed[k][i] for k in st} if self.lag else st))
-        for k in keys:
-            last = self._fresh[n - 1].get(k)
-            if self.prior is not None and last is not None:
-                self._before[k] = (self._buf[n - 1][1][k], last)
-            else:
-                self._before.pop(k, None)
+        _, last, fresh = self._buf[n - 1]
+        self._before = {k: (last[k], fresh[k]) for k in keys if fresh.get(k) is not None}
         # the released frames' successors keep their filtered steps: the next pass smooths them again from
         # newer data, and only needs the filtered state of each frame
         del self._buf[:n]
-        del self._fresh[:n]
         return out
 
     def _refiltered(self, key: str, steps: list[FilterStep | None]) -> list[FilterStep | None]:
         """``key``'s buffered ``steps`` re-filtered under the smoother's prior: from the first frame not
         re-filtered yet (new, or revised), continuing the frame before it."""
-        start = next((i for i, fresh in enumerate(self._fresh) if key not in fresh), len(steps))
+        cache = [fresh for _, _, fresh in self._buf]
+        start = next((i for i, fresh in enumerate(cache) if key not in fresh), len(steps))
         if start < len(steps):
             if start == 0:
                 before = self._before.get(key)
             else:
-                prev = self._fresh[start - 1][key]
+                prev = cache[start - 1][key]
                 before = (steps[start - 1], prev) if prev is not None else None
-            for fresh, step in zip(self._fresh[start:], refilter_under(steps[start:], self.prior, before)):
+            for fresh, step in zip(cache[start:], refilter_under(steps[start:], self.prior, before)):
                 fresh[key] = step
-        return [fresh[key] for fresh in self._fresh]
+        return [fresh[key] for fresh in cache]
