@@ -20,16 +20,21 @@ def _translation_run(n=25, seed=0):
     rng = np.random.default_rng(seed)
     truth = np.array([[10 + 30 * k * DT, -5 + 0.5 * np.sin(k / 4), 80 - 10 * k * DT] for k in range(n)])
     meas = truth + rng.normal(0, [2.0, 2.0, 3.0], (n, 3))
+    return truth, meas, _filtered(meas)
+
+
+def _filtered(meas, cov=MEAS_COV):
+    """The filter's steps over position measurements ``meas`` (n, 3) mm, one per frame, all fused."""
     kf = PoseKalman(CFG)
     steps = []
-    for k in range(n):
+    for k in range(len(meas)):
         if k == 0:
-            kf.init(np.eye(3), meas[0], 0.0, MEAS_COV)
+            kf.init(np.eye(3), meas[0], 0.0, cov)
         else:
             kf.predict(k * DT)
-            kf.update(np.eye(3), meas[k], MEAS_COV, gate=False)
+            kf.update(np.eye(3), meas[k], cov, gate=False)
         steps.append(kf.snapshot())
-    return truth, meas, steps
+    return steps
 
 
 def _linear_model():
@@ -246,15 +251,7 @@ def test_a_stiffer_depth_prior_keeps_the_depth_noise_out_of_the_path():
     n = 90
     truth = np.array([[-15 + 20 * k * DT, 3 * np.sin(k / 10), 80.0] for k in range(n)])
     meas = truth + rng.normal(0, [0.3, 0.3, 3.0], (n, 3))
-    cov = np.diag([0.09, 0.09, 9.0, 1e-4, 1e-4, 1e-4])
-    kf, steps = PoseKalman(CFG), []
-    for k in range(n):
-        if k == 0:
-            kf.init(np.eye(3), meas[0], 0.0, cov)
-        else:
-            kf.predict(k * DT)
-            kf.update(np.eye(3), meas[k], cov, gate=False)
-        steps.append(kf.snapshot())
+    steps = _filtered(meas, np.diag([0.09, 0.09, 9.0, 1e-4, 1e-4, 1e-4]))
 
     def paths(sm):
         d = np.diff([s.x[0:3] for s in sm], axis=0)
