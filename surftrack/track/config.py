@@ -279,9 +279,10 @@ class TrackConfig:
         """The smoother's motion prior, or None where it is the filter's own (always with ``articulated``:
         an instrument's state is not a part's pose, and its smoothing was not measured with another)."""
         a = self.kalman.accel_std_mm_s2
-        if self.articulated or (self.smooth_lateral_accel_std_mm_s2 == a and self.smooth_depth_accel_std_mm_s2 == a):
+        lateral, depth = self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2
+        if self.articulated or lateral == depth == a:
             return None
-        return SmootherPrior(a, self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2)
+        return SmootherPrior(a, lateral, depth)
 
     def for_fps(self, fps: float) -> TrackConfig:
         """This config for a video at ``fps`` frames/s: ``keyframe_every`` lowered to ``keyframe_max_s``

@@ -99,8 +99,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
     fused: keyframe, silhouette, flow) is the filter's posterior information less its prediction's, in
     the prediction's chart; the prediction is re-made about the same nominal trajectory (the filter's
     transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` added, a restart's
-    widening and cut between pose and rates as the filter made them) and the information fused into it. A segment start (no ``prior``) and
-    a state that is not a part's 12-vector (an instrument's articulated state) are kept as they are.
+    widening and cut between pose and rates as the filter made them) and the information fused into it.
+    A segment start (no ``prior``) and a state that is not a part's 12-vector (an instrument's
+    articulated state) are kept as they are.
     ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
     re-filtered steps stay in the filter's nominal rotations, so unlike a filter's their ``dtheta`` is not
     0 (it carries the rotation difference; :attr:`FilterStep.pose` includes it); their ``prior`` is the
@@ -123,7 +124,7 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
         Q = pr.P - F @ old.P @ F.T
         Q[0:6, 0:6] += prior.position_q_change(pr.x[0:3], step.time - old.time)
         P_pred = F @ new.P @ F.T + Q
-        if not pr.P[np.ix_(_POSE, _RATES)].any():  # a restart cut the pose loose from the rates: so here
+        if not pr.P[np.ix_(_POSE, _RATES)].any():  # a restart (PoseKalman.restart) cut pose from rates: keep it
             P_pred[np.ix_(_POSE, _RATES)] = 0.0
             P_pred[np.ix_(_RATES, _POSE)] = 0.0
         P_pred = 0.5 * (P_pred + P_pred.T)
@@ -158,7 +159,8 @@ class LagSmoother:
         # per buffered frame: the caller's item, its filtered steps and (with a prior) its re-filtered ones
         self._buf: list[tuple[Any, dict[str, FilterStep | None], dict[str, FilterStep | None]]] = []
         self.prior = prior
-        self._before: dict[str, tuple[FilterStep, FilterStep]] = {}  # the last released frame's (filtered, re-filtered)
+        # per key, the last released frame's (filtered, re-filtered) steps: where the next pass continues
+        self._before: dict[str, tuple[FilterStep, FilterStep]] = {}
 
     def __len__(self) -> int:
         return len(self._buf)
