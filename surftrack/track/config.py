@@ -109,8 +109,8 @@ class TrackConfig:
     estimator's depth errs by 2-3 mm, correlated over many frames, its image position by 0.2 mm: the
     smoother believes depth changes less and lateral moves more. 10 / 120 against the filter's 30: on
     ten fresh runs (clips 76-80) the median speed error 26 -> 20 %, ADD-10 -0.2 +- 0.5 points
-    (docs/results/2026-12-06-smoother-prior.md). Not used with ``articulated``; ``every_frame.yaml``
-    keeps the filter's (30 / 30: not measured with the estimator on every frame).
+    (docs/results/2026-12-06-smoother-prior.md; with the estimator on every frame, seven development
+    runs: 32 -> 23 %, ADD-10 +0.8 +- 1.4). Not used with ``articulated`` (the filter's prior smooths it).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
