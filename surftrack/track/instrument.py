@@ -298,7 +298,7 @@ class InstrumentKalman:
 
         self.kf.P = widened(self.kf.P)
         if self.prior is not None:
-            self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, widened(self.prior.P))
+            self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, widened(self.prior.P), restarted=True)
         self._model_cache = None
 
     # ------------------------------------------------------------------ output

@@ -199,12 +199,15 @@ def change_chart(R_from: np.ndarray, x: np.ndarray, P: np.ndarray,
 class FilterPrior:
     """The prediction into a frame: error-state transition ``F`` (12, 12) from the previous frame's
     filtered state, predicted nominal rotation ``R`` (3, 3), error state ``x`` (12,) and covariance
-    ``P`` (12, 12) (process noise and any widening by :meth:`PoseKalman.restart` included)."""
+    ``P`` (12, 12) (process noise and any widening by :meth:`PoseKalman.restart` included).
+    ``restarted``: a restart widened ``P`` and cut the pose loose from the rates (zero covariance
+    between them)."""
 
     F: np.ndarray
     R: np.ndarray
     x: np.ndarray
     P: np.ndarray
+    restarted: bool = False
 
 
 @dataclass(frozen=True)
@@ -234,6 +237,9 @@ class FilterStep:
         """6x6 covariance of (t mm, body rotation rad)."""
         return _H @ self.P @ _H.T
 
+
+# a part's error state [t, v, dtheta, omega]: the pose's coordinates and the rates'
+POSE_INDEX, RATE_INDEX = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
 
 _H = np.zeros((6, 12))
 _H[0:3, 0:3] = np.eye(3)
@@ -403,10 +409,10 @@ class PoseKalman:
         # the pose block widened and cut loose from the rates: a jump says nothing about the velocities
         # (through the prior's pose-velocity correlation it would turn into a velocity that runs away)
         P = self.prior.P + _H.T @ np.asarray(widen, np.float64) @ _H
-        pose, rates = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+        pose, rates = POSE_INDEX, RATE_INDEX
         P[np.ix_(pose, rates)] = 0.0
         P[np.ix_(rates, pose)] = 0.0
-        self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, P)
+        self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, P, restarted=True)
         self.R_ref = self.prior.R.copy()
         self.kf.x = self.prior.x.reshape(12, 1).copy()
         self.kf.P = P.copy()

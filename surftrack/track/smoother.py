@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.track.kalman import FilterPrior, FilterStep, change_chart, inject_rotation
+from surftrack.track.kalman import POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, change_chart, inject_rotation
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -84,9 +84,6 @@ class SmootherPrior:
         return np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), M)
 
 
-_POSE, _RATES = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
-
-
 def _sym_inv(P: np.ndarray) -> np.ndarray:
     M = np.linalg.inv(P)
     return 0.5 * (M + M.T)
@@ -124,9 +121,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
         Q = pr.P - F @ old.P @ F.T
         Q[0:6, 0:6] += prior.position_q_change(pr.x[0:3], step.time - old.time)
         P_pred = F @ new.P @ F.T + Q
-        if not pr.P[np.ix_(_POSE, _RATES)].any():  # a restart (PoseKalman.restart) cut pose from rates: keep it
-            P_pred[np.ix_(_POSE, _RATES)] = 0.0
-            P_pred[np.ix_(_RATES, _POSE)] = 0.0
+        if pr.restarted:  # the restart's cut between pose and rates, as the filter made it
+            P_pred[np.ix_(POSE_INDEX, RATE_INDEX)] = 0.0
+            P_pred[np.ix_(RATE_INDEX, POSE_INDEX)] = 0.0
         P_pred = 0.5 * (P_pred + P_pred.T)
         x_pred = pr.x + F @ (new.x - old.x)
         x_post, P_post = change_chart(step.R, step.x, step.P, pr.R)
