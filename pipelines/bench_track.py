@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.checkpoint import load_checkpoint
     from surftrack.paths import default_model_path
     from surftrack.synth.clip import ClipConfig, make_clip
-    from surftrack.track import filter_steps, load_track_config
+    from surftrack.track import ended_revisions, filter_steps, load_track_config
     from surftrack.track.clip_eval import (ClipGroundTruth, TrackScore, format_path_causes, format_summary,
                                            format_tip_summary)
     from surftrack.track.smoother import LagSmoother
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                     est_calls[s.info.estimator] += 1
                 restarts[s.spec.part] += bool(s.info.restarted)
             t0 = time.perf_counter()
-            ready = smoother.push((index, time_s, states), filter_steps(states))
+            ready = smoother.push((index, time_s, states), filter_steps(states), ended_revisions(states))
             smooth_s += time.perf_counter() - t0
             score_smoothed(ready)
 

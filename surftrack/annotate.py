@@ -32,7 +32,7 @@ from surftrack import __version__
 from surftrack.instruments import BUILTIN, InstrumentRegistry
 from surftrack.io.sinks import FrameSink, JointsSink, McapSink, OverlaySink, TumSink
 from surftrack.io.video import read_video_frames
-from surftrack.track import PartSpec, PartState, TrackConfig, Tracker, filter_steps
+from surftrack.track import PartSpec, PartState, TrackConfig, Tracker, ended_revisions, filter_steps
 from surftrack.track.smoother import LagSmoother
 from surftrack.track.inputs import CameraInput, InputError, VideoInfo, load_boxes, load_camera, probe_video
 
@@ -410,7 +410,7 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
                     states = tracker.step(frame, t_s, per_frame.get(index))
                     timing["track_s"] += time.perf_counter() - t0
                     release(smoother.push((index, t_s, frame if keep_frames else None, states),
-                                          filter_steps(states)))
+                                          filter_steps(states), ended_revisions(states)))
                     bar.update(1)
                     bar.set_postfix(fps=f"{n_done / max(time.perf_counter() - wall0, 1e-9):.1f}")
                 else:

@@ -181,6 +181,26 @@ def test_a_revision_replaces_the_buffered_steps_and_starts_where_the_buffer_does
     assert by[11].prior is None and all(by[k].prior is not None for k in range(12, 16))
 
 
+def test_a_revision_without_a_step_to_carry_it():
+    """A track that ended revises its last frames with no step of its own on the frame it ends
+    (``revisions``): the buffered frames take the revised steps, the ending frame has none."""
+    truth, meas, steps = _translation_run(n=12)
+    shifted = [(s.time, (np.eye(3), m + np.array([30.0, 0, 0]), MEAS_COV)) for s, m in zip(steps[6:10], meas[6:10])]
+    _, revised = refilter(CFG, shifted, last_ungated=True)
+    sm, got = LagSmoother(lag=6, chunk=1), []
+    for k in range(10):
+        got += sm.push(k, {"p": steps[k]})
+    got += sm.push(10, {"p": None}, {"p": tuple(revised)})
+    got += sm.flush()
+    by = {i: st["p"] for i, st in got}
+    assert sorted(by) == list(range(11)) and by[10] is None
+    assert all(np.linalg.norm(by[k].x[0:3] - truth[k]) < 8.0 for k in range(6))
+    assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(6, 10))
+    assert by[6].prior is None
+    causal = LagSmoother(lag=0)  # a causal run writes what the filter had
+    assert causal.push(10, {"p": None}, {"p": tuple(revised)}) == [(10, {"p": None})]
+
+
 # the smoother's own prior: stiffer along the line of sight (the runs above look along +z from near the axis)
 PRIOR = SmootherPrior(CFG.accel_std_mm_s2, 80.0, 10.0)
 

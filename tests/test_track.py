@@ -836,6 +836,67 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
     assert sum(flags) == 1 and flags[2] == (not retro)
 
 
+@pytest.mark.parametrize("flipped", [False, True])
+def test_a_track_that_ends_while_refusing_estimates_is_revised_in_hindsight(clip, lnd_parts, tiny_ckpt, flipped):
+    """A part that leaves fast: the estimator puts it 20 mm away on two frames (both refused: fewer than
+    ``max_rejections``), then sees nothing twice and the track ends. The causal run keeps the old track on those
+    frames; the smoothed run writes them from the refused estimates, which agree with each other (the
+    track's end revised in hindsight), unless the earlier one is turned half a turn (a flipped estimate:
+    one estimate alone is not taken)."""
+    from surftrack.model import load_checkpoint
+    from surftrack.pose.estimator import PartPose
+    from surftrack.track import ended_revisions
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    info = next(p for p in model.parts if p.name == "wrist")
+    tid = lnd_parts["wrist"]
+    gt, frames = ClipGroundTruth(clip / "gt.json"), _frames(clip)
+    i = max(range(len(frames)), key=lambda k: gt.pose(k, tid)[2])
+    R, t, _ = gt.pose(i, tid)
+
+    class Leaving:
+        """The tool at ``t + shift`` turned by ``turn``, or not seen at all."""
+
+        def __init__(self):
+            self.model, self.shift, self.turn, self.seen = model, np.zeros(3), np.eye(3), True
+
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
+            return [PartPose(o, info.name, info.instrument, R @ self.turn, t + self.shift,
+                             5.0 if self.seen else 0.0, 200 if self.seen else 0, self.seen, {}, (0, 0, 1, 1),
+                             np.eye(3)) for o, _ in boxes]
+
+    est = Leaving()
+    spec = PartSpec(tid, info.obj_id, "large_needle_driver", 0, "wrist", info.vertices, info.faces)
+    cfg = TrackConfig(region=False, flow=False, kinematic=False, keyframe_every=1, est_pos_std_mm=1.0,
+                      est_lateral_std_mm=1.0, kalman=dataclasses.replace(TrackConfig().kalman, init_vel_std_mm_s=5.0,
+                                                                         max_rejections=3))
+    tracker = Tracker(est, _K(clip), (320, 256), [spec], cfg)
+    tracker.set_pose(tid, R, t, 0.0)
+    states = [tracker.step(frames[i], k / 10.0, None)[0] for k in range(1, 4)]
+    est.shift = np.array([20.0, 0.0, 0.0])
+    for k in (4, 5):
+        est.turn = np.diag([1.0, -1.0, -1.0]) if flipped and k == 4 else np.eye(3)
+        states.append(tracker.step(frames[i], k / 10.0, None)[0])
+    est.seen = False  # asked again on the next frame before the part is given up
+    states += [tracker.step(frames[i], k / 10.0, None)[0] for k in (6, 7)]
+    assert [s.status for s in states] == ["keyframe"] * 3 + ["predicted"] * 3 + ["lost"]
+    assert all(np.linalg.norm(s.t - t) < 2.0 for s in states[:6])  # the causal run: the old track
+    # the frame after the last refused estimate is coasted from the new run
+    assert [r.time for r in states[6].revises] == ([] if flipped else [0.4, 0.5, 0.6])
+    smoother, ready = LagSmoother(lag=3), []
+    for state in states:
+        ready += smoother.push(state, filter_steps([state]), ended_revisions([state]))
+    out = [state.settle(steps, cfg) for state, steps in ready + smoother.flush()]
+    assert all(np.linalg.norm(o.t - t) < 2.0 for o in out[:3])
+    moved = t + est.shift
+    if flipped:
+        assert all(np.linalg.norm(o.t - t) < 2.0 for o in out[3:5])
+    else:
+        assert all(np.linalg.norm(o.t - moved) < 0.5 for o in out[3:6])
+        assert out[3].info.restarted and not any(o.info.restarted for o in out[4:6])
+    assert out[6].t is None and out[6].status == "lost"
+
+
 def test_a_restart_in_hindsight_reaches_one_second_back_and_leaves_out_a_half_turn():
     """The refused estimates a restart in hindsight starts from: at most 1 s back (``RETRO_MAX_S``), and not
     past one turned half a turn from the rest, even where estimates so uncertain in rotation pass the

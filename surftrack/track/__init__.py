@@ -14,8 +14,8 @@ from surftrack.track.config import TrackConfig, TrackConfigError, load_track_con
 from surftrack.track.inputs import InputError
 from surftrack.track.kalman import CHI2_6DOF_999, KalmanConfig, PoseKalman
 from surftrack.track.status import MEASURED, POSED, Diagnostics, Status
-from surftrack.track.tracker import PartSpec, PartState, Tracker, box_iou, filter_steps, projected_box
+from surftrack.track.tracker import PartSpec, PartState, Tracker, box_iou, ended_revisions, filter_steps, projected_box
 
 __all__ = ["CHI2_6DOF_999", "Diagnostics", "MEASURED", "POSED", "InputError", "KalmanConfig", "PartSpec", "PartState", "PoseKalman",
-           "Status", "TrackConfig", "TrackConfigError", "Tracker", "box_iou", "filter_steps", "load_track_config",
+           "Status", "TrackConfig", "TrackConfigError", "Tracker", "box_iou", "ended_revisions", "filter_steps", "load_track_config",
            "projected_box"]

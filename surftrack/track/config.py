@@ -114,7 +114,10 @@ class TrackConfig:
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
-    take the new one's poses once smoothed (a causal run only gains the better-founded restart).
+    take the new one's poses once smoothed (a causal run only gains the better-founded restart). A track
+    that ends (the part lost) while the estimator disagrees with it, fewer times than that, has its last
+    frames taken from those refused estimates in the same way, where at least two agree (a fast move out
+    of the view, which the track lags behind and its gate refuses; the causal run is not changed).
 
     ``confidence_add``, ``confidence_scale``, ``confidence_nis_weight``: a written pose's confidence
     (:func:`~surftrack.track.tracker.confidence`) is the probability that its position error is within

@@ -30,7 +30,7 @@ prediction and posterior, and smoothed.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -162,8 +162,14 @@ class LagSmoother:
     def __len__(self) -> int:
         return len(self._buf)
 
-    def push(self, item: Any, steps: dict[str, FilterStep | None]) -> list[tuple[Any, dict[str, FilterStep | None]]]:
+    def push(self, item: Any, steps: dict[str, FilterStep | None],
+             revisions: Mapping[str, Sequence[FilterStep]] | None = None) -> list[tuple[Any, dict[str, FilterStep | None]]]:
+        """``revisions``: per key, revised steps of earlier frames that no step of this frame carries (a
+        track that ended, :func:`~.tracker.ended_revisions`)."""
         steps = dict(steps)
+        if self.lag:
+            for key, revised in (revisions or {}).items():
+                self._revise(key, revised)
         for key, step in steps.items():
             if step is not None and step.revises and self.lag:
                 self._revise(key, step.revises)

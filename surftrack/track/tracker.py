@@ -14,7 +14,9 @@ part's filter, gated like any other: a single disagreement is more often the est
 real jump and is left out; ``kalman.max_rejections`` in a row restart the track: by default in hindsight,
 from the first refused estimate the last one continues (``TrackConfig.retro_restart``: the smoother takes
 the new track for the frames the old one was wrong on), else at the last estimate alone (widening the
-prediction, so a smoothed run keeps the track in one piece, :meth:`PoseKalman.restart`).
+prediction, so a smoothed run keeps the track in one piece, :meth:`PoseKalman.restart`). A track that
+ends while its estimates are refused is revised the same way for the smoother
+(:meth:`_Track.ended_in_hindsight`).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from surftrack.track.config import TrackConfig, TrackConfigError
 from surftrack.track.flow import (SurfaceSamples, TrackPoints, pnp_measurement, pose_distance, track_points,
                                   visible_points)
 from surftrack.track.instrument import InstrumentKalman, PartFilter
-from surftrack.track.kalman import FilterStep, PoseKalman, refilter
+from surftrack.track.kalman import FilterStep, KalmanConfig, PoseKalman, refilter
 from surftrack.track.region import ArticulatedModel, PoseModel, RegionConfig, RegionTracker, observed_directions
 from surftrack.track.status import POSED, Diagnostics, Status
 from surftrack.track.trocar import Trocar
@@ -112,6 +114,9 @@ class PartState:
     filter_step: FilterStep | None = None  # the part's filter this frame (for smoothing; None without a pose)
     # the instrument's articulated state this part is a view of: (its smoothing key, the filter, its step)
     shared: tuple[str, InstrumentKalman, FilterStep] | None = None
+    # a part without a pose whose track ended this frame: its last frames' steps as a track restarted in
+    # hindsight (:meth:`_Track.ended_in_hindsight`), which the smoother writes instead
+    revises: tuple[FilterStep, ...] = ()
 
     def smoothing_key(self) -> str:
         """The key of the filter state this part's pose comes from (its own, or its instrument's)."""
@@ -199,6 +204,12 @@ def filter_steps(states: Sequence[PartState]) -> dict[str, FilterStep | None]:
     return out
 
 
+def ended_revisions(states: Sequence[PartState]) -> dict[str, tuple[FilterStep, ...]]:
+    """The revised steps of the parts whose tracks ended this frame (:attr:`PartState.revises`), by
+    smoothing key, for :meth:`~.smoother.LagSmoother.push`."""
+    return {s.smoothing_key(): s.revises for s in states if s.revises}
+
+
 def box_iou(a: Box, b: Box) -> float:
     """Intersection over union of two (x, y, w, h) boxes."""
     ax1, ay1, bx1, by1 = a[0] + a[2], a[1] + a[3], b[0] + b[2], b[1] + b[3]
@@ -239,6 +250,31 @@ def estimator_cov(t: np.ndarray, cfg: TrackConfig) -> np.ndarray:
         lat, depth = cfg.est_lateral_std_mm**2, cfg.est_pos_std_mm**2
         cov[:3, :3] = lat * np.eye(3) + (depth - lat) * np.outer(u, u)
     return cov
+
+
+def agreeing_start(streak: Sequence[tuple[float, tuple | None]], R: np.ndarray, t: np.ndarray, cov: np.ndarray,
+                   time_s: float, config: KalmanConfig) -> int | None:
+    """Index in ``streak`` (frames of refused estimates in a row: ``(time s, (R, t, covariance) or
+    None)``, oldest first) of the earliest refused estimate that the estimate ``R``, ``t`` (mm), ``cov``
+    at ``time_s`` continues, or None. A filter run backward in time from it (the time negated; a
+    constant-velocity model runs either way) takes them while they pass its gate; the first it refuses
+    (another tool), one turned more than ``RETRO_MAX_TURN_DEG`` from it (a flipped jaw) or one older than
+    ``RETRO_MAX_S`` ends the run."""
+    back = PoseKalman(config)
+    back.init(R, t, -time_s, cov)
+    first, measured = None, True
+    for k in range(len(streak) - 1, -1, -1):
+        ts, meas = streak[k]
+        if ts < time_s - RETRO_MAX_S:
+            break
+        back.predict(-ts, coast=not measured)
+        measured = (meas is not None and rotation_angle_deg(meas[0], back.pose[0]) <= RETRO_MAX_TURN_DEG
+                    and back.update(*meas))
+        if meas is not None and not measured:
+            break
+        if measured:
+            first = k
+    return first
 
 
 class _Track:
@@ -305,13 +341,39 @@ class _Track:
             self.streak = []
         self.refused = None
 
+    def ended_in_hindsight(self) -> tuple[FilterStep, ...]:
+        """The steps of this track's last frames as a track restarted from the estimates it refused there
+        (revised, for the smoother), or none. For a track that ends while the estimator disagrees with it
+        (a fast move out of the view, which a constant-velocity track lags behind and its gate then
+        refuses): the last refused estimate and the earlier ones it continues (:func:`agreeing_start`, at
+        least one) start a filter run, which coasts over the frames after the last of them. The causal
+        run is not changed; the smoother writes these frames from that run."""
+        if not (self.cfg.retro_restart and self.has_pose and isinstance(self.kf, PoseKalman)):
+            return ()
+        last = next((k for k in range(len(self.streak) - 1, -1, -1) if self.streak[k][1] is not None), None)
+        if last is None:
+            return ()
+        time_s, (R, t, cov) = self.streak[last]
+        first = agreeing_start(self.streak[:last], R, t, cov, time_s, self.kf.config)
+        if first is None:
+            return ()
+        kf, steps = refilter(self.kf.config, self.streak[first:last + 1], last_ungated=True)
+        for ts, _ in self.streak[last + 1:]:
+            kf.predict(ts, coast=True)
+            steps.append(kf.snapshot())
+        return tuple(dataclasses.replace(s, revised=True) for s in steps)
+
     def drop(self) -> None:
+        """End the track (the part is lost); its last frames may be revised in hindsight
+        (:meth:`ended_in_hindsight`, in ``revision`` for this frame's state)."""
+        ended = self.ended_in_hindsight()
         if isinstance(self.kf, PartFilter):
             self.kf.deactivate()
         self.kf = self.new_filter()
         self.unseen = self.occluded = 0
         self.nis = 1.0
         self.forget_refusals()
+        self.revision = ended
         self.status = Status.LOST
         self.points = TrackPoints(np.zeros((0, 2)), np.zeros((0, 3)))
 
@@ -489,7 +551,8 @@ class Tracker:
                 states.append(state.settled(step, self.cfg))  # the causal confidence
             else:
                 states.append(PartState(tr.spec, tr.status, 0.0, None, None, out_boxes.get(tr.spec.track_id),
-                                        dataclasses.replace(tr.info)))
+                                        dataclasses.replace(tr.info), revises=tr.revision))
+                tr.revision = ()
             tr.note_refusals(time_s)
         return states
 
@@ -965,29 +1028,13 @@ class Tracker:
         ``cov``), as if they had started a new track: the frames since the first of them get the steps of
         that run (``tr.revision``, for the smoother), the filter goes on from it. Offline, the frames the
         track was wrong on before the estimator had disagreed often enough are then right too, and the
-        jump moves to the first of them. Only the refused estimates this one continues count: a filter run
-        backward in time from it (the time negated; a constant-velocity model runs either way) takes them
-        while they pass its gate; the first it refuses (another tool), one turned more than
-        ``RETRO_MAX_TURN_DEG`` from it (a flipped jaw) or one older than ``RETRO_MAX_S`` ends the run.
-        Region and flow measurements of those frames are left out (they measured the old track's pose).
-        False where there is nothing to restart from (no such estimate, or an instrument's articulated
-        state)."""
+        jump moves to the first of them. Only the refused estimates this one continues count
+        (:func:`agreeing_start`). Region and flow measurements of those frames are left out (they measured
+        the old track's pose). False where there is nothing to restart from (no such estimate, or an
+        instrument's articulated state)."""
         if not isinstance(tr.kf, PoseKalman):
             return False
-        back = PoseKalman(tr.kf.config)
-        back.init(R, t, -time_s, cov)
-        first, measured = None, True
-        for k in range(len(tr.streak) - 1, -1, -1):
-            ts, meas = tr.streak[k]
-            if ts < time_s - RETRO_MAX_S:
-                break
-            back.predict(-ts, coast=not measured)
-            measured = (meas is not None and rotation_angle_deg(meas[0], back.pose[0]) <= RETRO_MAX_TURN_DEG
-                        and back.update(*meas))
-            if meas is not None and not measured:
-                break
-            if measured:
-                first = k
+        first = agreeing_start(tr.streak, R, t, cov, time_s, tr.kf.config)
         if first is None:
             return False
         kf, steps = refilter(tr.kf.config, tr.streak[first:] + [(time_s, (R, t, cov))], last_ungated=True)
