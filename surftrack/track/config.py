@@ -110,7 +110,12 @@ class TrackConfig:
     smoother believes depth changes less and lateral moves more. 10 / 120 against the filter's 30: on
     ten fresh runs (clips 76-80) the median speed error 26 -> 20 %, ADD-10 -0.2 +- 0.5 points
     (docs/results/2026-12-06-smoother-prior.md; with the estimator on every frame, seven development
-    runs: 32 -> 23 %, ADD-10 +0.8 +- 1.4). Not used with ``articulated`` (the filter's prior smooths it).
+    runs: 32 -> 23 %, ADD-10 +0.8 +- 1.4). ``smooth_ang_accel_std_rad_s2``: the smoother's white-noise
+    angular acceleration of each part (rad/s^2) in place of ``kalman.ang_accel_std_rad_s2``: the tool tip,
+    10 mm out on the jaws, moves with every wobble of their rotation. 1.5 against the filter's 3: the
+    tip's median speed error 25 -> 22 % on the fresh runs, 26 -> 20 % on 15 held-out ones, ADD-10 -0.2 +-
+    0.2 and -0.1 +- 0.2 (docs/results/2026-12-06-track-end.md). Neither is used with ``articulated`` (the
+    filter's prior smooths it).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
@@ -199,6 +204,7 @@ class TrackConfig:
     smooth_lag_s: float = 1.0
     smooth_lateral_accel_std_mm_s2: float = 120.0
     smooth_depth_accel_std_mm_s2: float = 10.0
+    smooth_ang_accel_std_rad_s2: float = 1.5
     retro_restart: bool = True
     confidence_add: float = 0.1
     confidence_scale: float = 1.5
@@ -256,7 +262,7 @@ class TrackConfig:
         for name in ("inlier_px", "max_rms_px", "est_pos_std_mm", "est_lateral_std_mm", "est_rot_std_deg",
                      "confidence_add", "confidence_scale", "region_joint_std_deg", "region_max_std_mm",
                      "region_max_std_deg", "joint_accel_std_rad_s2", "smooth_lateral_accel_std_mm_s2",
-                     "smooth_depth_accel_std_mm_s2"):
+                     "smooth_depth_accel_std_mm_s2", "smooth_ang_accel_std_rad_s2"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("flow_floor_mm", "flow_floor_deg", "region_floor_mm", "region_floor_deg", "trocar_floor_mm",
@@ -281,11 +287,11 @@ class TrackConfig:
     def smoother_prior(self) -> SmootherPrior | None:
         """The smoother's motion prior, or None where it is the filter's own (always with ``articulated``:
         an instrument's state is not a part's pose, and its smoothing was not measured with another)."""
-        a = self.kalman.accel_std_mm_s2
+        a, w = self.kalman.accel_std_mm_s2, self.kalman.ang_accel_std_rad_s2
         lateral, depth = self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2
-        if self.articulated or lateral == depth == a:
+        if self.articulated or (lateral == depth == a and self.smooth_ang_accel_std_rad_s2 == w):
             return None
-        return SmootherPrior(a, lateral, depth)
+        return SmootherPrior(a, lateral, depth, w, self.smooth_ang_accel_std_rad_s2)
 
     def for_fps(self, fps: float) -> TrackConfig:
         """This config for a video at ``fps`` frames/s: ``keyframe_every`` lowered to ``keyframe_max_s``

@@ -22,7 +22,9 @@ serves its gate and keyframe decisions, where a stiff one lags real moves and re
 follow them; the smoother only decides how far to believe each frame's measurements, and the
 estimator's depth is the one that errs (2-3 mm along the line of sight, correlated over many frames,
 against 0.2 mm across it), so a stiffer prior along the line of sight keeps its wander out of the speeds
-and paths (docs/results/2026-12-06-smoother-prior.md). The filter is then run again under that prior
+and paths (docs/results/2026-12-06-smoother-prior.md). Its rotation prior is stiffer than the filter's too: the
+tool tip, 10 mm out on the jaws, moves with every wobble of their rotation, and its speed is read off
+the smoothed rotations (docs/results/2026-12-06-track-end.md). The filter is then run again under that prior
 (:func:`refilter_under`), with each frame's measurement information recovered from the filter's own
 prediction and posterior, and smoothed.
 """
@@ -35,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.track.kalman import POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, change_chart, inject_rotation
+from surftrack.track.kalman import (POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, _block_q, change_chart,
+                                    inject_rotation)
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -61,17 +64,32 @@ def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
 class SmootherPrior:
     """The smoother's white-noise acceleration of a part's position, split across
     (``lateral_accel_std_mm_s2``) and along (``depth_accel_std_mm_s2``) the line of sight through it, in
-    place of the filter's isotropic ``filter_accel_std_mm_s2`` (all mm/s^2). Rotation keeps the filter's."""
+    place of the filter's isotropic ``filter_accel_std_mm_s2`` (all mm/s^2); and of its rotation,
+    ``ang_accel_std_rad_s2`` in place of the filter's ``filter_ang_accel_std_rad_s2`` (rad/s^2; both or
+    neither: None keeps the filter's)."""
 
     filter_accel_std_mm_s2: float
     lateral_accel_std_mm_s2: float
     depth_accel_std_mm_s2: float
+    filter_ang_accel_std_rad_s2: float | None = None
+    ang_accel_std_rad_s2: float | None = None
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if v is None and f.name.endswith("rad_s2"):
+                continue
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{f.name} must be > 0, got {v!r}")
+        if (self.filter_ang_accel_std_rad_s2 is None) != (self.ang_accel_std_rad_s2 is None):
+            raise ValueError("filter_ang_accel_std_rad_s2 and ang_accel_std_rad_s2 come together")
+
+    def rotation_q_change(self, dt: float) -> np.ndarray | None:
+        """(6, 6): what this prior adds to the filter's process noise of ``[dtheta, omega]`` (rad, rad/s)
+        over ``dt`` s, or None where the rotation keeps the filter's prior."""
+        if self.ang_accel_std_rad_s2 is None:
+            return None
+        return _block_q(dt, self.ang_accel_std_rad_s2**2 - self.filter_ang_accel_std_rad_s2**2)
 
     def position_q_change(self, direction: np.ndarray, dt: float) -> np.ndarray:
         """(6, 6): what this prior adds to the filter's process noise of ``[t, v]`` (mm, mm/s) over ``dt``
@@ -120,6 +138,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
         # the filter's process noise (and a restart's widening) as it entered this prediction
         Q = pr.P - F @ old.P @ F.T
         Q[0:6, 0:6] += prior.position_q_change(pr.x[0:3], step.time - old.time)
+        dq = prior.rotation_q_change(step.time - old.time)
+        if dq is not None:
+            Q[6:12, 6:12] += dq
         P_pred = F @ new.P @ F.T + Q
         if pr.restarted:  # the restart's cut between pose and rates, as the filter made it
             P_pred[np.ix_(POSE_INDEX, RATE_INDEX)] = 0.0
