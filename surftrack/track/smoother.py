@@ -22,11 +22,11 @@ serves its gate and keyframe decisions, where a stiff one lags real moves and re
 follow them; the smoother only decides how far to believe each frame's measurements, and the
 estimator's depth is the one that errs (2-3 mm along the line of sight, correlated over many frames,
 against 0.2 mm across it), so a stiffer prior along the line of sight keeps its wander out of the speeds
-and paths (docs/results/2026-12-06-smoother-prior.md). Its rotation prior is stiffer than the filter's too: the
-tool tip, 10 mm out on the jaws, moves with every wobble of their rotation, and its speed is read off
-the smoothed rotations (docs/results/2026-12-06-track-end.md). The filter is then run again under that prior
-(:func:`refilter_under`), with each frame's measurement information recovered from the filter's own
-prediction and posterior, and smoothed.
+and paths (docs/results/2026-12-06-smoother-prior.md). Its rotation prior is stiffer than the filter's
+too: the tool tip, 10 mm out on the jaws, moves with every wobble of their rotation, and its speed is
+read off the smoothed rotations (docs/results/2026-12-06-tip-rotation-prior.md). The filter is then run
+again under that prior (:func:`refilter_under`), with each frame's measurement information recovered
+from the filter's own prediction and posterior, and smoothed.
 """
 
 from __future__ import annotations
@@ -184,7 +184,8 @@ class LagSmoother:
         return len(self._buf)
 
     def push(self, item: Any, steps: dict[str, FilterStep | None],
-             revisions: Mapping[str, Sequence[FilterStep]] | None = None) -> list[tuple[Any, dict[str, FilterStep | None]]]:
+             revisions: Mapping[str, Sequence[FilterStep]] | None = None
+             ) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         """``revisions``: per key, revised steps of earlier frames that no step of this frame carries (a
         track that ended, :func:`~.tracker.ended_revisions`)."""
         steps = dict(steps)
