@@ -8,7 +8,7 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from surftrack.geometry import rotation_angle_deg, so3_exp
-from surftrack.track.kalman import KalmanConfig, PoseKalman, _block_q, refilter
+from surftrack.track.kalman import KalmanConfig, PoseKalman, refilter, white_noise_q
 from surftrack.track.smoother import LagSmoother, SmootherPrior, refilter_under, rts_smooth
 
 DT = 1 / 30
@@ -40,7 +40,7 @@ def _filtered(meas, cov=MEAS_COV):
 def _linear_model():
     F = np.eye(6)
     F[0:3, 3:6] = np.eye(3) * DT
-    Q = _block_q(DT, CFG.accel_std_mm_s2**2)
+    Q = white_noise_q(DT, CFG.accel_std_mm_s2**2)
     H = np.hstack([np.eye(3), np.zeros((3, 3))])
     P0 = np.diag([4.0, 4.0, 9.0] + [CFG.init_vel_std_mm_s**2] * 3)
     return F, Q, H, P0
@@ -187,16 +187,17 @@ def test_a_revision_without_a_step_to_carry_it():
     truth, meas, steps = _translation_run(n=12)
     shifted = [(s.time, (np.eye(3), m + np.array([30.0, 0, 0]), MEAS_COV)) for s, m in zip(steps[6:10], meas[6:10])]
     _, revised = refilter(CFG, shifted, last_ungated=True)
-    sm, got = LagSmoother(lag=6, chunk=1), []
-    for k in range(10):
-        got += sm.push(k, {"p": steps[k]})
-    got += sm.push(10, {"p": None}, {"p": tuple(revised)})
-    got += sm.flush()
-    by = {i: st["p"] for i, st in got}
-    assert sorted(by) == list(range(11)) and by[10] is None
-    assert all(np.linalg.norm(by[k].x[0:3] - truth[k]) < 8.0 for k in range(6))
-    assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(6, 10))
-    assert by[6].prior is None
+    for lag, first in ((6, 6), (2, 8)):  # with a lag of 2, frames 6 and 7 are written before the revision
+        sm, got = LagSmoother(lag=lag, chunk=1), []
+        for k in range(10):
+            got += sm.push(k, {"p": steps[k]})
+        got += sm.push(10, {"p": None}, {"p": tuple(revised)})
+        got += sm.flush()
+        by = {i: st["p"] for i, st in got}
+        assert sorted(by) == list(range(11)) and by[10] is None
+        assert all(np.linalg.norm(by[k].x[0:3] - truth[k]) < 8.0 for k in range(first))
+        assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(first, 10))
+        assert by[first].prior is None  # the revised run starts a segment where the buffer does
     causal = LagSmoother(lag=0)  # a causal run writes what the filter had
     assert causal.push(10, {"p": None}, {"p": tuple(revised)}) == [(10, {"p": None})]
 
@@ -258,8 +259,8 @@ def test_refiltering_through_a_restart_and_a_coast_matches_the_filter_under_that
             steps.append(kf.snapshot())
         return steps
 
-    # the rotation's prior stiffer too (the runs measure no rotation: the filter's angular velocity, and so
-    # its transition, stays the same under either prior)
+    # the rotation's prior stiffer too (the runs measure the same rotation on every frame: the filter's
+    # angular velocity stays 0, and so its transition is the same under either prior)
     looser = dataclasses.replace(CFG, accel_std_mm_s2=80.0, ang_accel_std_rad_s2=0.5)
     ours = refilter_under(run(CFG), SmootherPrior(CFG.accel_std_mm_s2, 80.0, 80.0, CFG.ang_accel_std_rad_s2, 0.5))
     want = run(looser)

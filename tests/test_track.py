@@ -897,6 +897,35 @@ def test_a_track_that_ends_while_refusing_estimates_is_revised_in_hindsight(clip
     assert out[6].t is None and out[6].status == "lost"
 
 
+def test_an_ended_track_s_revision_carries_the_move_and_survives_a_failed_reappearance():
+    """The revised run of an ended track carries the refused estimates' velocity over the frame after the
+    last of them (the filter coasts only after an unmeasured frame), and a second drop in the same frame
+    (the part's reappearance failed) keeps the revision the first made."""
+    from surftrack.track.kalman import PoseKalman
+    from surftrack.track.status import Status
+    from surftrack.track.tracker import _Track
+
+    cfg = TrackConfig(kalman=dataclasses.replace(TrackConfig().kalman, coast_tau_s=0.1))
+    spec = PartSpec(1, 1, "large_needle_driver", 0, "wrist", np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]]))
+    tr = _Track(spec, cfg)
+    assert isinstance(tr.kf, PoseKalman)
+    cov = np.diag([1.0] * 3 + [1e-4] * 3)
+    t0, v = np.array([0.0, 0.0, 80.0]), np.array([40.0, 0.0, 0.0])  # mm, mm/s
+    tr.kf.init(np.eye(3), t0, 0.0, cov)
+    tr.status = Status.PREDICTED
+    tr.streak = [(0.4, (np.eye(3), t0 + 0.4 * v, cov)), (0.5, (np.eye(3), t0 + 0.5 * v, cov)),
+                 (0.6, None), (0.7, None)]
+    tr.drop()
+    steps = {round(s.time, 3): s for s in tr.revision}
+    assert sorted(steps) == [0.4, 0.5, 0.6, 0.7] and all(s.revised for s in tr.revision)
+    assert np.linalg.norm(steps[0.5].x[0:3] - (t0 + 0.5 * v)) < 0.5
+    step = np.linalg.norm(steps[0.7].x[0:3] - steps[0.6].x[0:3])  # the velocity as far as 0.6 is kept
+    assert 0.75 * 4.0 < step < 1.25 * 4.0, step
+    kept = tr.revision
+    tr.drop()  # a reappearance in the same frame that failed
+    assert tr.revision == kept and tr.status == Status.LOST
+
+
 def test_a_restart_in_hindsight_reaches_one_second_back_and_leaves_out_a_half_turn():
     """The refused estimates a restart in hindsight starts from: at most 1 s back (``RETRO_MAX_S``), and not
     past one turned half a turn from the rest, even where estimates so uncertain in rotation pass the

@@ -28,8 +28,8 @@ from surftrack.geometry import se3, se3_inv
 from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import Instrument, JointFit, JointState, base_from_root, joints_from_poses
 from surftrack.instruments.kinematics import JOINT_NAMES
-from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, _block_q, gate_limit, inject_rotation,
-                                    pose_transition, speed_std)
+from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, gate_limit, inject_rotation,
+                                    pose_transition, speed_std, white_noise_q)
 from surftrack.track.region import ArticulatedModel
 from surftrack.track.trocar import Trocar
 
@@ -191,7 +191,7 @@ class InstrumentKalman:
         F, Q = np.eye(self.dim), np.zeros((self.dim, self.dim))
         F[:12, :12], Q[:12, :12] = pose_transition(self.kf.x.reshape(self.dim)[9:12], dt, self.config)
         F[12:12 + self.n, 12 + self.n:] = np.eye(self.n) * dt
-        Q[12:, 12:] = _block_q(dt, self.joint_q, self.n)
+        Q[12:, 12:] = white_noise_q(dt, self.joint_q, self.n)
         return F, Q
 
     def predict(self, time: float) -> None:

@@ -126,7 +126,7 @@ def _chi2_999(dof: int) -> float:
     return float(chi2.ppf(0.999, dof))
 
 
-def _block_q(dt: float, q: float, axes: int = 3) -> np.ndarray:
+def white_noise_q(dt: float, q: float, axes: int = 3) -> np.ndarray:
     """(2 axes, 2 axes) white-noise-acceleration covariance of ``axes`` positions followed by their rates."""
     i = np.eye(axes)
     return q * np.block([[dt**3 / 3.0 * i, dt**2 / 2.0 * i], [dt**2 / 2.0 * i, dt * i]])
@@ -162,8 +162,8 @@ def pose_transition(omega: np.ndarray, dt: float, config: KalmanConfig,
     F[6:9, 9:12] = np.eye(3) * dt
     F[9:12, 9:12] = np.eye(3) * decay
     Q = np.zeros((12, 12))
-    Q[0:6, 0:6] = _block_q(dt, config.accel_std_mm_s2**2)
-    Q[6:12, 6:12] = _block_q(dt, config.ang_accel_std_rad_s2**2)
+    Q[0:6, 0:6] = white_noise_q(dt, config.accel_std_mm_s2**2)
+    Q[6:12, 6:12] = white_noise_q(dt, config.ang_accel_std_rad_s2**2)
     return F, Q
 
 

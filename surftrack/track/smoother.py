@@ -14,8 +14,9 @@ tests check this pass against it and against a brute-force batch solution on a l
 until ``lag`` newer frames exist, so each is smoothed with at least ``lag`` frames of future (for a
 constant-velocity model a second of future holds nearly all the information a full pass would use) while
 memory stays flat in the video's length. ``lag = 0`` passes frames through unchanged (causal). A step
-that ``revises`` earlier frames (a track restarted in hindsight) replaces their buffered steps before the
-next pass; frames already released keep what was written.
+that ``revises`` earlier frames (a track restarted in hindsight), or a revision pushed with a frame (a
+track that ended, no step of its own to carry it), replaces their buffered steps before the next pass;
+frames already released keep what was written.
 
 The smoother may assume another motion prior than the filter (:class:`SmootherPrior`): the filter's prior
 serves its gate and keyframe decisions, where a stiff one lags real moves and refuses the keyframes that
@@ -37,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.track.kalman import (POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, _block_q, change_chart,
-                                    inject_rotation)
+from surftrack.track.kalman import (POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, change_chart,
+                                    inject_rotation, white_noise_q)
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -89,7 +90,7 @@ class SmootherPrior:
         over ``dt`` s, or None where the rotation keeps the filter's prior."""
         if self.ang_accel_std_rad_s2 is None:
             return None
-        return _block_q(dt, self.ang_accel_std_rad_s2**2 - self.filter_ang_accel_std_rad_s2**2)
+        return white_noise_q(dt, self.ang_accel_std_rad_s2**2 - self.filter_ang_accel_std_rad_s2**2)
 
     def position_q_change(self, direction: np.ndarray, dt: float) -> np.ndarray:
         """(6, 6): what this prior adds to the filter's process noise of ``[t, v]`` (mm, mm/s) over ``dt``
@@ -113,8 +114,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
     given them under the smoother's ``prior``. Each frame's measurement information (everything it
     fused: keyframe, silhouette, flow) is the filter's posterior information less its prediction's, in
     the prediction's chart; the prediction is re-made about the same nominal trajectory (the filter's
-    transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` added, a restart's
-    widening and cut between pose and rates as the filter made them) and the information fused into it.
+    transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` and
+    :meth:`SmootherPrior.rotation_q_change` added, a restart's widening and cut between pose and rates as
+    the filter made them) and the information fused into it.
     A segment start (no ``prior``) and a state that is not a part's 12-vector (an instrument's
     articulated state) are kept as they are.
     ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
@@ -167,7 +169,8 @@ class LagSmoother:
     over the buffer (``lag + chunk`` frames at most), so each frame costs about ``(lag + chunk) / chunk``
     backward steps per part. ``prior``: the smoother's own motion prior (:class:`SmootherPrior`; None:
     the filter's); the filter is run again under it over the buffer, continuing from the last released
-    frame's re-filtered step."""
+    frame's re-filtered step. ``push(item, steps, revisions)``: revised steps of earlier frames by key,
+    for a track that ended (:func:`~.tracker.ended_revisions`)."""
 
     def __init__(self, lag: int, chunk: int | None = None, prior: SmootherPrior | None = None):
         if lag < 0:

@@ -115,7 +115,8 @@ class PartState:
     # the instrument's articulated state this part is a view of: (its smoothing key, the filter, its step)
     shared: tuple[str, InstrumentKalman, FilterStep] | None = None
     # a part without a pose whose track ended this frame: its last frames' steps as a track restarted in
-    # hindsight (:meth:`_Track.ended_in_hindsight`), which the smoother writes instead
+    # hindsight (:meth:`_Track.ended_in_hindsight`), which the smoother writes instead (a part that
+    # starts again in the same frame carries them on its new step's ``revises``)
     revises: tuple[FilterStep, ...] = ()
 
     def smoothing_key(self) -> str:
@@ -205,8 +206,9 @@ def filter_steps(states: Sequence[PartState]) -> dict[str, FilterStep | None]:
 
 
 def ended_revisions(states: Sequence[PartState]) -> dict[str, tuple[FilterStep, ...]]:
-    """The revised steps of the parts whose tracks ended this frame (:attr:`PartState.revises`), by
-    smoothing key, for :meth:`~.smoother.LagSmoother.push`."""
+    """The revised steps of the parts whose tracks ended this frame and that have no pose on it
+    (:attr:`PartState.revises`), by smoothing key, for :meth:`~.smoother.LagSmoother.push` (the steps of
+    the posed parts carry theirs)."""
     return {s.smoothing_key(): s.revises for s in states if s.revises}
 
 
@@ -299,7 +301,8 @@ class _Track:
         # estimate (R, t, covariance) or None), for restarting in hindsight (retro_restart)
         self.streak: list[tuple[float, tuple | None]] = []
         self.refused: tuple | None = None  # this frame's refused estimate
-        self.revision: tuple[FilterStep, ...] = ()  # earlier frames' steps a restart in hindsight replaced
+        # earlier frames' steps that a restart in hindsight, or the track's end (ended_in_hindsight), replaced
+        self.revision: tuple[FilterStep, ...] = ()
         self.info = Diagnostics()
         rng = np.random.default_rng(spec.obj_id)
         v = spec.vertices
@@ -346,8 +349,10 @@ class _Track:
         (revised, for the smoother), or none. For a track that ends while the estimator disagrees with it
         (a fast move out of the view, which a constant-velocity track lags behind and its gate then
         refuses): the last refused estimate and the earlier ones it continues (:func:`agreeing_start`, at
-        least one) start a filter run, which coasts over the frames after the last of them. The causal
-        run is not changed; the smoother writes these frames from that run."""
+        least one) start a filter run, carried over the frames after the last of them as the filter would
+        (coasting after the first). The causal run is not changed; the smoother writes these frames from
+        that run. A run that stops while the estimates are refused keeps the track: only the track's loss
+        says that it, not the estimates, was wrong."""
         if not (self.cfg.retro_restart and self.has_pose and isinstance(self.kf, PoseKalman)):
             return ()
         last = next((k for k in range(len(self.streak) - 1, -1, -1) if self.streak[k][1] is not None), None)
@@ -358,15 +363,16 @@ class _Track:
         if first is None:
             return ()
         kf, steps = refilter(self.kf.config, self.streak[first:last + 1], last_ungated=True)
-        for ts, _ in self.streak[last + 1:]:
-            kf.predict(ts, coast=True)
+        for k, (ts, _) in enumerate(self.streak[last + 1:]):
+            kf.predict(ts, coast=k > 0)
             steps.append(kf.snapshot())
         return tuple(dataclasses.replace(s, revised=True) for s in steps)
 
     def drop(self) -> None:
         """End the track (the part is lost); its last frames may be revised in hindsight
-        (:meth:`ended_in_hindsight`, in ``revision`` for this frame's state)."""
-        ended = self.ended_in_hindsight()
+        (:meth:`ended_in_hindsight`, in ``revision`` for this frame's state). A track dropped again in the
+        same frame (a reappearance that failed) keeps the revision its first drop made."""
+        ended = self.ended_in_hindsight() if self.has_pose else self.revision
         if isinstance(self.kf, PartFilter):
             self.kf.deactivate()
         self.kf = self.new_filter()
