@@ -764,14 +764,10 @@ def test_a_track_gets_a_retry_after_each_frame_the_network_saw_something(clip, l
     assert next(script, None) is None
 
 
-@pytest.mark.parametrize("retro,flipped", [(True, False), (False, False), (True, True)])
-def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny_ckpt, retro, flipped):
-    """One estimate outside the filter's gate is left out (as often an outlier as a move); after
-    ``kalman.max_rejections`` of them in a row the track restarts at the estimate, and says so. Restarted
-    in hindsight (``retro_restart``), the smoothed track is the new one from the first refused estimate
-    that the restarting one continues (a flipped one before it is not), and starts there."""
+def _wrist_at_its_clearest(clip, lnd_parts, tiny_ckpt):
+    """For a scripted estimator: the model, the wrist's part info and track id, the clip's frames, the
+    frame where the wrist shows most, and its true pose (R, t mm) there."""
     from surftrack.model import load_checkpoint
-    from surftrack.pose.estimator import PartPose
 
     model = load_checkpoint(tiny_ckpt)[0]
     info = next(p for p in model.parts if p.name == "wrist")
@@ -779,6 +775,18 @@ def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny
     gt, frames = ClipGroundTruth(clip / "gt.json"), _frames(clip)
     i = max(range(len(frames)), key=lambda k: gt.pose(k, tid)[2])
     R, t, _ = gt.pose(i, tid)
+    return model, info, tid, frames, i, R, t
+
+
+@pytest.mark.parametrize("retro,flipped", [(True, False), (False, False), (True, True)])
+def test_estimates_that_keep_disagreeing_restart_the_track(clip, lnd_parts, tiny_ckpt, retro, flipped):
+    """One estimate outside the filter's gate is left out (as often an outlier as a move); after
+    ``kalman.max_rejections`` of them in a row the track restarts at the estimate, and says so. Restarted
+    in hindsight (``retro_restart``), the smoothed track is the new one from the first refused estimate
+    that the restarting one continues (a flipped one before it is not), and starts there."""
+    from surftrack.pose.estimator import PartPose
+
+    model, info, tid, frames, i, R, t = _wrist_at_its_clearest(clip, lnd_parts, tiny_ckpt)
 
     class Still:
         """A tool standing still, estimated at ``t + shift``, turned by ``turn``."""
@@ -843,16 +851,10 @@ def test_a_track_that_ends_while_refusing_estimates_is_revised_in_hindsight(clip
     frames; the smoothed run writes them from the refused estimates, which agree with each other (the
     track's end revised in hindsight), unless the earlier one is turned half a turn (a flipped estimate:
     one estimate alone is not taken)."""
-    from surftrack.model import load_checkpoint
     from surftrack.pose.estimator import PartPose
     from surftrack.track import ended_revisions
 
-    model = load_checkpoint(tiny_ckpt)[0]
-    info = next(p for p in model.parts if p.name == "wrist")
-    tid = lnd_parts["wrist"]
-    gt, frames = ClipGroundTruth(clip / "gt.json"), _frames(clip)
-    i = max(range(len(frames)), key=lambda k: gt.pose(k, tid)[2])
-    R, t, _ = gt.pose(i, tid)
+    model, info, tid, frames, i, R, t = _wrist_at_its_clearest(clip, lnd_parts, tiny_ckpt)
 
     class Leaving:
         """The tool at ``t + shift`` turned by ``turn``, or not seen at all."""
