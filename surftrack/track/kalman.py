@@ -241,6 +241,15 @@ class FilterStep:
 # a part's error state [t, v, dtheta, omega]: the pose's coordinates and the rates'
 POSE_INDEX, RATE_INDEX = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
 
+
+def cut_pose_from_rates(P: np.ndarray) -> np.ndarray:
+    """A copy of a part's covariance ``P`` (12, 12) without the covariance between its pose and its rates
+    (a restart: a jump says nothing about the velocities)."""
+    P = np.array(P, np.float64)
+    P[np.ix_(POSE_INDEX, RATE_INDEX)] = 0.0
+    P[np.ix_(RATE_INDEX, POSE_INDEX)] = 0.0
+    return P
+
 _H = np.zeros((6, 12))
 _H[0:3, 0:3] = np.eye(3)
 _H[3:6, 6:9] = np.eye(3)
@@ -408,10 +417,7 @@ class PoseKalman:
             return
         # the pose block widened and cut loose from the rates: a jump says nothing about the velocities
         # (through the prior's pose-velocity correlation it would turn into a velocity that runs away)
-        P = self.prior.P + _H.T @ np.asarray(widen, np.float64) @ _H
-        pose, rates = POSE_INDEX, RATE_INDEX
-        P[np.ix_(pose, rates)] = 0.0
-        P[np.ix_(rates, pose)] = 0.0
+        P = cut_pose_from_rates(self.prior.P + _H.T @ np.asarray(widen, np.float64) @ _H)
         self.prior = FilterPrior(self.prior.F, self.prior.R, self.prior.x, P, restarted=True)
         self.R_ref = self.prior.R.copy()
         self.kf.x = self.prior.x.reshape(12, 1).copy()

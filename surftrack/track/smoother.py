@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from surftrack.track.kalman import (POSE_INDEX, RATE_INDEX, FilterPrior, FilterStep, change_chart,
-                                    inject_rotation, white_noise_q)
+from surftrack.track.kalman import (FilterPrior, FilterStep, change_chart, cut_pose_from_rates, inject_rotation,
+                                    white_noise_q)
 
 
 def rts_smooth(steps: Sequence[FilterStep | None]) -> list[FilterStep | None]:
@@ -100,7 +100,7 @@ class SmootherPrior:
         uu = np.outer(u, u)
         q0 = self.filter_accel_std_mm_s2**2
         M = (self.lateral_accel_std_mm_s2**2 - q0) * (np.eye(3) - uu) + (self.depth_accel_std_mm_s2**2 - q0) * uu
-        return np.kron(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]), M)
+        return np.kron(white_noise_q(dt, 1.0, axes=1), M)
 
 
 def _sym_inv(P: np.ndarray) -> np.ndarray:
@@ -145,8 +145,7 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
             Q[6:12, 6:12] += dq
         P_pred = F @ new.P @ F.T + Q
         if pr.restarted:  # the restart's cut between pose and rates, as the filter made it
-            P_pred[np.ix_(POSE_INDEX, RATE_INDEX)] = 0.0
-            P_pred[np.ix_(RATE_INDEX, POSE_INDEX)] = 0.0
+            P_pred = cut_pose_from_rates(P_pred)
         P_pred = 0.5 * (P_pred + P_pred.T)
         x_pred = pr.x + F @ (new.x - old.x)
         x_post, P_post = change_chart(step.R, step.x, step.P, pr.R)
