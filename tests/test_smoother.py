@@ -347,6 +347,46 @@ def test_a_revision_is_refiltered_under_the_smoothers_prior():
     assert all(np.linalg.norm(by[k].x[0:3] - truth[k] - [30.0, 0, 0]) < 8.0 for k in range(11, 16))
 
 
+def test_refiltering_an_instruments_state_matches_its_filter_under_that_prior():
+    """An instrument's articulated state (root pose, joints and their rates) re-filtered under another
+    prior of its root pose is its filter run under that prior, through a restart's widening (the joints
+    cut loose from their rates as well) and unmeasured frames; the joints keep the filter's prior."""
+    from surftrack.instruments import load_instrument
+    from surftrack.track.instrument import InstrumentKalman
+
+    lnd = load_instrument("lnd")
+    names = {p: f"lnd.0.{p}" for p in lnd.part_names}
+    _, meas, _ = _translation_run(n=25, seed=4)
+    R_root = so3_exp(np.array([0.3, -0.2, 0.1]))
+    cov = np.diag([4.0] * 3 + [1e-3] * 3)
+
+    def run(cfg):
+        kf, steps = InstrumentKalman(lnd, names, cfg, joint_accel_std_rad_s2=2.0), []
+        for k in range(25):
+            if k == 0:
+                kf.init({names["shaft"]: (R_root, meas[0])}, 0.0, cov)  # the joints at rest, unpinned
+            else:
+                kf.predict(k * DT)
+                if k == 12:
+                    kf.widen(np.diag([400.0] * 3 + [0.1] * 3), 0.05)
+                if k not in (16, 17, 18):
+                    # the root seen at one rotation: the rates stay 0 and the transition is the same
+                    # under either prior, so the two runs linearise alike
+                    kf.update_part(names["shaft"], R_root, meas[k] + (k >= 12) * np.array([20.0, 0, 0]), cov,
+                                   gate=False)
+            steps.append(kf.snapshot())
+        return steps
+
+    filtered = run(CFG)
+    assert filtered[1].x.shape == (12 + 2 * 3,)  # pitch, yaw, opening (the roll is the root's)
+    looser = dataclasses.replace(CFG, accel_std_mm_s2=80.0, ang_accel_std_rad_s2=0.5)
+    ours = refilter_under(filtered, SmootherPrior(CFG.accel_std_mm_s2, 80.0, 80.0, CFG.ang_accel_std_rad_s2, 0.5))
+    want = run(looser)
+    np.testing.assert_allclose([s.x for s in ours], [s.x for s in want], atol=1e-6)
+    np.testing.assert_allclose([s.P for s in ours], [s.P for s in want], rtol=1e-6, atol=1e-6)
+    assert not np.allclose([s.x for s in ours], [s.x for s in filtered], atol=1e-3)
+
+
 def test_the_tracking_config_names_the_smoothers_prior():
     from surftrack.track import TrackConfig
 

@@ -114,8 +114,9 @@ class TrackConfig:
     angular acceleration of each part (rad/s^2) in place of ``kalman.ang_accel_std_rad_s2``: the tool tip,
     10 mm out on the jaws, moves with every wobble of their rotation. 1.5 against the filter's 3: the
     tip's median speed error 25 -> 22 % on the fresh runs, 26 -> 20 % on 15 held-out ones, ADD-10 -0.2 +-
-    0.2 and -0.1 +- 0.2 (docs/results/2026-12-06-tip-rotation-prior.md). Neither is used with
-    ``articulated`` (the filter's prior smooths it).
+    0.2 and -0.1 +- 0.2 (docs/results/2026-12-06-tip-rotation-prior.md). With ``articulated`` both act on
+    the instrument's root pose (the joints keep ``joint_accel_std_rad_s2``): over 42 runs ADD-10 +0.1 to
+    +5.0 points per set against the filter's prior, and paths closer (docs/results/2026-12-06-articulated-prior.md).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,
@@ -285,11 +286,11 @@ class TrackConfig:
                                anchor_translation_weight=self.kinematic_anchor_translation_weight)
 
     def smoother_prior(self) -> SmootherPrior | None:
-        """The smoother's motion prior, or None where it is the filter's own (always with ``articulated``:
-        an instrument's state is not a part's pose, and its smoothing was not measured with another)."""
+        """The smoother's motion prior, or None where it is the filter's own (with ``articulated``, of the
+        instrument's root pose)."""
         a, w = self.kalman.accel_std_mm_s2, self.kalman.ang_accel_std_rad_s2
         lateral, depth = self.smooth_lateral_accel_std_mm_s2, self.smooth_depth_accel_std_mm_s2
-        if self.articulated or (lateral == depth == a and self.smooth_ang_accel_std_rad_s2 == w):
+        if lateral == depth == a and self.smooth_ang_accel_std_rad_s2 == w:
             return None
         return SmootherPrior(a, lateral, depth, w, self.smooth_ang_accel_std_rad_s2)
 

@@ -28,8 +28,9 @@ from surftrack.geometry import se3, se3_inv
 from surftrack.geometry.transforms import so3_exp, so3_log
 from surftrack.instruments import Instrument, JointFit, JointState, base_from_root, joints_from_poses
 from surftrack.instruments.kinematics import JOINT_NAMES
-from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, gate_limit, inject_rotation,
-                                    pose_transition, speed_std, white_noise_q)
+from surftrack.track.kalman import (FilterPrior, FilterStep, KalmanConfig, cut_pose_from_rates, gate_limit,
+                                    inject_rotation, pose_and_rate_index, pose_transition, speed_std,
+                                    white_noise_q)
 from surftrack.track.region import ArticulatedModel
 from surftrack.track.trocar import Trocar
 
@@ -88,12 +89,12 @@ class InstrumentKalman:
     @property
     def pose_cols(self) -> np.ndarray:
         """The state's pose and joint error coordinates (position, rotation, joints) ..."""
-        return np.r_[_POSE, np.arange(12, 12 + self.n)]
+        return pose_and_rate_index(self.dim)[0]
 
     @property
     def rate_cols(self) -> np.ndarray:
         """... and their rates, in the same order (velocity, angular velocity, joint rates)."""
-        return np.r_[3:6, 9:12, np.arange(12 + self.n, self.dim)]
+        return pose_and_rate_index(self.dim)[1]
 
     @property
     def x(self) -> np.ndarray:
@@ -286,15 +287,11 @@ class InstrumentKalman:
         measurement the state disbelieves (:meth:`PoseKalman.restart`). Applied to the current state, so
         the other parts' updates of this frame stay; the frame's prediction gets the same widening (as
         extra process noise for the smoother)."""
-        pose, rates = self.pose_cols, self.rate_cols
-
         def widened(P: np.ndarray) -> np.ndarray:
             P = P.copy()
             P[np.ix_(_POSE, _POSE)] += pose_cov
             P[12:12 + self.n, 12:12 + self.n] += np.eye(self.n) * joint_var
-            P[np.ix_(pose, rates)] = 0.0
-            P[np.ix_(rates, pose)] = 0.0
-            return P
+            return cut_pose_from_rates(P)
 
         self.kf.P = widened(self.kf.P)
         if self.prior is not None:

@@ -238,16 +238,23 @@ class FilterStep:
         return _H @ self.P @ _H.T
 
 
-# a part's error state [t, v, dtheta, omega]: the pose's coordinates and the rates'
-POSE_INDEX, RATE_INDEX = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+def pose_and_rate_index(dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pose coordinates and their rates, in the same order, of an error state of ``dim`` entries: a
+    part's ``[t, v, dtheta, omega]`` (12) or an instrument's ``[t, v, dtheta, omega, q (n), qdot (n)]``
+    (12 + 2n; :class:`~.instrument.InstrumentKalman`), the joints counted with the pose."""
+    n, odd = divmod(dim - 12, 2)
+    if dim < 12 or odd:
+        raise ValueError(f"an error state has 12 + 2n entries, got {dim}")
+    return np.r_[0:3, 6:9, 12:12 + n], np.r_[3:6, 9:12, 12 + n:dim]
 
 
 def cut_pose_from_rates(P: np.ndarray) -> np.ndarray:
-    """A copy of a part's covariance ``P`` (12, 12) without the covariance between its pose and its rates
-    (a restart: a jump says nothing about the velocities)."""
+    """A copy of the covariance ``P`` (12 + 2n square, :func:`pose_and_rate_index`) without the covariance
+    between the pose (and joints) and the rates (a restart: a jump says nothing about the velocities)."""
     P = np.array(P, np.float64)
-    P[np.ix_(POSE_INDEX, RATE_INDEX)] = 0.0
-    P[np.ix_(RATE_INDEX, POSE_INDEX)] = 0.0
+    pose, rates = pose_and_rate_index(len(P))
+    P[np.ix_(pose, rates)] = 0.0
+    P[np.ix_(rates, pose)] = 0.0
     return P
 
 _H = np.zeros((6, 12))

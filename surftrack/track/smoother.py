@@ -117,8 +117,9 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
     transition ``F``, its process noise with :meth:`SmootherPrior.position_q_change` and
     :meth:`SmootherPrior.rotation_q_change` added, a restart's widening and cut between pose and rates as
     the filter made them) and the information fused into it.
-    A segment start (no ``prior``) and a state that is not a part's 12-vector (an instrument's
-    articulated state) are kept as they are.
+    An instrument's articulated state (:class:`~.instrument.InstrumentKalman`) is re-filtered alike, the
+    prior applied to its root's pose (its first 12 entries; the joints keep the filter's). A segment start
+    (no ``prior``) is kept as it is.
     ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
     re-filtered steps stay in the filter's nominal rotations, so unlike a filter's their ``dtheta`` is not
     0 (it carries the rotation difference; :attr:`FilterStep.pose` includes it); their ``prior`` is the
@@ -130,7 +131,7 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
             out.append(None)
             prev = None
             continue
-        if step.prior is None or prev is None or step.x.shape != (12,):
+        if step.prior is None or prev is None:
             out.append(step)
             prev = (step, step)
             continue
