@@ -265,6 +265,21 @@ def test_tool_tip_velocity_is_the_states_motion_through_the_kinematics():
     assert np.trace(emp) == pytest.approx(np.trace(C), rel=0.2)
 
 
+def test_a_restart_cuts_the_pose_and_the_joints_loose_from_their_rates():
+    """``widen`` (a restart's jump) leaves no covariance between the pose and joints and any rate, in
+    the state and in the frame's prediction (which the smoother re-makes), and widens the pose."""
+    kf, _, _ = _run(_truth(8), np.random.default_rng(3), 0.5, 1.0)
+    pose, rates = kf.pose_cols, kf.rate_cols
+    assert len(pose) == len(rates) == 6 + kf.n
+    assert np.abs(kf.kf.P[np.ix_(pose, rates)]).max() > 1e-6  # the filter's run correlated them
+    before = kf.kf.P.copy()
+    kf.widen(np.diag([9.0] * 3 + [0.01] * 3), 0.02)
+    for P in (kf.kf.P, kf.prior.P):
+        assert np.all(P[np.ix_(pose, rates)] == 0.0) and np.all(P[np.ix_(rates, pose)] == 0.0)
+    assert kf.prior.restarted
+    assert np.allclose(np.diag(kf.kf.P)[pose], np.diag(before)[pose] + np.array([9.0] * 3 + [0.01] * 3 + [0.02] * kf.n))
+
+
 def test_a_part_joining_far_off_is_a_jump_not_a_spin():
     """A part seen again 100 deg from where its instrument's state has it joins (never gated out), as
     a jump of the pose: the rates stay what they were, so the instrument does not start to spin."""

@@ -349,8 +349,10 @@ def test_a_revision_is_refiltered_under_the_smoothers_prior():
 
 def test_refiltering_an_instruments_state_matches_its_filter_under_that_prior():
     """An instrument's articulated state (root pose, joints and their rates) re-filtered under another
-    prior of its root pose is its filter run under that prior, through a restart's widening (the joints
-    cut loose from their rates as well) and unmeasured frames; the joints keep the filter's prior."""
+    prior of its root pose is its filter run under that prior, through a restart's widening made before
+    the frame's measurements (the joints cut loose from their rates as well) and unmeasured frames; the
+    joints keep the filter's prior. A measurement of the root's position and a joint together correlates
+    them, so the cut of the joints is felt."""
     from surftrack.instruments import load_instrument
     from surftrack.track.instrument import InstrumentKalman
 
@@ -374,6 +376,13 @@ def test_refiltering_an_instruments_state_matches_its_filter_under_that_prior():
                     # under either prior, so the two runs linearise alike
                     kf.update_part(names["shaft"], R_root, meas[k] + (k >= 12) * np.array([20.0, 0, 0]), cov,
                                    gate=False)
+                if k % 3 == 0:  # x + 10 mm/rad * (the first joint), linear in the state: the joint at 0
+                    model = kf.model()
+                    basis = np.zeros((1, 6 + len(model.joints)))
+                    basis[0, 0], basis[0, 6] = 1.0, 10.0
+                    measured = np.zeros(basis.shape[1])
+                    measured[0] = meas[k][0] + 20.0 * (k >= 12) - (kf.x[0] + 10.0 * kf.x[12])
+                    kf.update_model(model, measured, basis, np.array([[1.0]]), gate=False)
             steps.append(kf.snapshot())
         return steps
 

@@ -115,8 +115,8 @@ class TrackConfig:
     10 mm out on the jaws, moves with every wobble of their rotation. 1.5 against the filter's 3: the
     tip's median speed error 25 -> 22 % on the fresh runs, 26 -> 20 % on 15 held-out ones, ADD-10 -0.2 +-
     0.2 and -0.1 +- 0.2 (docs/results/2026-12-06-tip-rotation-prior.md). With ``articulated`` both act on
-    the instrument's root pose (the joints keep ``joint_accel_std_rad_s2``): over 42 runs ADD-10 +0.1 to
-    +5.0 points per set against the filter's prior, and paths closer (docs/results/2026-12-06-articulated-prior.md).
+    the instrument's root pose (the joints keep ``joint_accel_std_rad_s2``;
+    docs/results/2026-12-06-articulated-prior.md).
     ``retro_restart``: a track the estimator has disagreed with ``kalman.max_rejections`` times in a row
     starts again from those refused estimates (as far back as they continue the last one), from the
     first of them on, instead of from the last one alone: the frames in between, wrong in the old track,

@@ -181,10 +181,10 @@ def inject_rotation(R_ref: np.ndarray, x: np.ndarray, P: np.ndarray) -> tuple[np
 
 def change_chart(R_from: np.ndarray, x: np.ndarray, P: np.ndarray,
                  R_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(x, P) of the error state ``x`` (12,), covariance ``P`` (12, 12), about nominal ``R_from`` (3, 3),
-    re-expressed about the nominal ``R_to``: the rotation error becomes ``log(R_to^T R_from exp(x_rot))``
-    and its covariance goes through the first-order Jacobian of that map, ``J_r(d)^-1 J_r(x_rot)`` (the
-    other components are the same in either chart)."""
+    """(x, P) of the error state ``x`` (12,), or an instrument's (12 + 2n,), covariance ``P`` to match,
+    about nominal ``R_from`` (3, 3), re-expressed about the nominal ``R_to``: the rotation error becomes
+    ``log(R_to^T R_from exp(x_rot))`` and its covariance goes through the first-order Jacobian of that
+    map, ``J_r(d)^-1 J_r(x_rot)`` (the other components are the same in either chart)."""
     x_rot = np.asarray(x, np.float64)[6:9]
     d = so3_log(R_to.T @ R_from @ so3_exp(x_rot))
     J = np.eye(len(x))
@@ -199,9 +199,10 @@ def change_chart(R_from: np.ndarray, x: np.ndarray, P: np.ndarray,
 class FilterPrior:
     """The prediction into a frame: error-state transition ``F`` (12, 12) from the previous frame's
     filtered state, predicted nominal rotation ``R`` (3, 3), error state ``x`` (12,) and covariance
-    ``P`` (12, 12) (process noise and any widening by :meth:`PoseKalman.restart` included).
-    ``restarted``: a restart widened ``P`` and cut the pose loose from the rates (zero covariance
-    between them)."""
+    ``P`` (12, 12) (process noise and any widening by :meth:`PoseKalman.restart` included); an
+    instrument's state (:class:`~.instrument.InstrumentKalman`) has 12 + 2n entries, its joints and their
+    rates after a part's 12. ``restarted``: a restart widened ``P`` and cut the pose loose from the rates
+    (zero covariance between them)."""
 
     F: np.ndarray
     R: np.ndarray
@@ -213,7 +214,8 @@ class FilterPrior:
 @dataclass(frozen=True)
 class FilterStep:
     """One frame of a part's filter: ``time`` (s), filtered nominal rotation ``R`` (3, 3), error state
-    ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12); ``prior``:
+    ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12) (an instrument's
+    state: 12 + 2n, :class:`FilterPrior`); ``prior``:
     the prediction into this frame, or None where a segment starts (first pose, re-initialisation).
     ``revises``: the filtered steps of earlier frames, oldest first, that replace the ones the filter
     gave them before a restart in hindsight (:func:`refilter`); the smoother swaps them in. ``revised``:

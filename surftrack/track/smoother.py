@@ -118,8 +118,11 @@ def refilter_under(steps: Sequence[FilterStep | None], prior: SmootherPrior,
     :meth:`SmootherPrior.rotation_q_change` added, a restart's widening and cut between pose and rates as
     the filter made them) and the information fused into it.
     An instrument's articulated state (:class:`~.instrument.InstrumentKalman`) is re-filtered alike, the
-    prior applied to its root's pose (its first 12 entries; the joints keep the filter's). A segment start
-    (no ``prior``) is kept as it is.
+    prior applied to its root's pose (its first 12 entries; the joints keep the filter's). Its restart
+    widens the state after whatever the frame fused before it (the trocar, the parts updated earlier),
+    and is taken here as part of the prediction: exact where the frame fused nothing before the restart
+    (and always under the filter's own prior), an approximation otherwise; so is a measurement the filter
+    linearised at its own state. A segment start (no ``prior``) is kept as it is.
     ``before``: the (filtered, re-filtered) steps of the frame before ``steps[0]``, for a stream. The
     re-filtered steps stay in the filter's nominal rotations, so unlike a filter's their ``dtheta`` is not
     0 (it carries the rotation difference; :attr:`FilterStep.pose` includes it); their ``prior`` is the
