@@ -277,7 +277,8 @@ def test_a_restart_cuts_the_pose_and_the_joints_loose_from_their_rates():
     for P in (kf.kf.P, kf.prior.P):
         assert np.all(P[np.ix_(pose, rates)] == 0.0) and np.all(P[np.ix_(rates, pose)] == 0.0)
     assert kf.prior.restarted
-    assert np.allclose(np.diag(kf.kf.P)[pose], np.diag(before)[pose] + np.array([9.0] * 3 + [0.01] * 3 + [0.02] * kf.n))
+    added = np.array([9.0] * 3 + [0.01] * 3 + [0.02] * kf.n)
+    assert np.allclose(np.diag(kf.kf.P)[pose], np.diag(before)[pose] + added)
 
 
 def test_a_part_joining_far_off_is_a_jump_not_a_spin():

@@ -215,8 +215,8 @@ class FilterPrior:
 class FilterStep:
     """One frame of a part's filter: ``time`` (s), filtered nominal rotation ``R`` (3, 3), error state
     ``x`` (12,) ``[t mm, v mm/s, dtheta = 0, omega rad/s]`` and covariance ``P`` (12, 12) (an instrument's
-    state: 12 + 2n, :class:`FilterPrior`); ``prior``:
-    the prediction into this frame, or None where a segment starts (first pose, re-initialisation).
+    state: 12 + 2n, :class:`FilterPrior`); ``prior``: the prediction into this frame, or None where a
+    segment starts (first pose, re-initialisation).
     ``revises``: the filtered steps of earlier frames, oldest first, that replace the ones the filter
     gave them before a restart in hindsight (:func:`refilter`); the smoother swaps them in. ``revised``:
     this step is one of them (or smoothed from one)."""
