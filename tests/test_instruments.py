@@ -559,3 +559,22 @@ def test_the_nearer_of_poses_and_their_roll_twin():
     assert turned and all(cost(p, *pose) < 1e-9 for p, pose in chosen.items())
     same, turned = twin.nearer(truth, cost)
     assert not turned and all(cost(p, *pose) == 0.0 for p, pose in same.items())
+
+
+def test_the_chain_bounds_how_far_apart_two_parts_origins_can_be():
+    """The reach between two parts' origins is the summed lengths of the joint offsets between them, and
+    no pose of the instrument puts them farther apart."""
+    lnd = load_instrument("lnd")
+    chain = lnd.chain
+    assert chain.origin_reach("shaft", "wrist") == 0.0
+    assert chain.origin_reach("wrist", "jaw_left") == pytest.approx(9.1)
+    assert chain.origin_reach("jaw_left", "shaft") == pytest.approx(9.1)
+    assert chain.origin_reach("jaw_left", "jaw_right") == pytest.approx(18.2)
+    assert chain.origin_reach("jaw_right", "jaw_right") == 0.0
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = JointState(*(rng.uniform(-1.2, 1.2, 4)))
+        poses = lnd.forward(np.eye(4), q)
+        for a in poses:
+            for b in poses:
+                assert np.linalg.norm(poses[a][:3, 3] - poses[b][:3, 3]) <= chain.origin_reach(a, b) + 1e-9

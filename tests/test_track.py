@@ -246,6 +246,44 @@ def test_a_part_hidden_while_its_instrument_is_seen_keeps_its_track(clip, lnd_pa
     assert all(s.status in ("predicted", "lost") for s in states) and all(not s.info.occluded for s in states)
 
 
+def test_a_part_starting_beyond_its_instruments_reach_is_refused(clip, lnd_parts, tiny_ckpt):
+    """A shaft (re)initialised from an estimate half a metre from its measured wrist and jaws (as one
+    from a sliver of shaft at the image's edge once was) does not start; the next estimate, where the
+    chain puts the shaft, does."""
+    from surftrack.model import load_checkpoint
+
+    model = load_checkpoint(tiny_ckpt)[0]
+    gt, K, frames = ClipGroundTruth(clip / "gt.json"), _K(clip), _frames(clip)
+    i = max(range(1, len(frames) - 2), key=lambda k: min(gt.pose(j, tid)[2] for tid in lnd_parts.values()
+                                                        for j in range(k - 1, k + 2)))
+    offset = np.array([200.0, 200.0, 400.0])
+
+    class Far(_GroundTruthEstimator):
+        def estimate(self, image, boxes, K, priors=None, groups=None, masks=False):
+            out = super().estimate(image, boxes, K, priors, groups)
+            return [dataclasses.replace(r, t=r.t + offset) if r.part == "shaft" else r for r in out]
+
+    est = Far(model, gt, lnd_parts, 0.0)
+    specs = [PartSpec(lnd_parts[p.name], p.obj_id, p.instrument, 0, p.name, p.vertices, p.faces) for p in model.parts]
+    shaft = next(s for s in specs if s.part == "shaft")
+    tracker = Tracker(est, K, (320, 256), specs, TrackConfig(kinematic=False, region=False, keyframe_every=1))
+    for s in specs:
+        if s.part != "shaft":
+            tracker.set_pose(s.track_id, *gt.pose(i - 1, s.track_id)[:2], (i - 1) / 10.0)
+    est.frame = i - 1
+    tracker.step(frames[i - 1], (i - 1) / 10.0, None)
+    shaft_box = {shaft.track_id: [(projected_box(K, *gt.pose(i, shaft.track_id)[:2], shaft.vertices, (320, 256))[0], 1.0)]}
+    est.frame = i
+    states = {s.spec.part: s for s in tracker.step(frames[i], i / 10.0, shaft_box)}
+    assert states["shaft"].R is None and states["shaft"].info.why_lost == "estimate beyond its instrument's reach"
+    assert states["wrist"].status == "keyframe"
+    offset[:] = 0.0
+    est.frame = i + 1
+    states = {s.spec.part: s for s in tracker.step(frames[i + 1], (i + 1) / 10.0, shaft_box)}
+    assert states["shaft"].status == "keyframe"
+    assert np.linalg.norm(states["shaft"].t - gt.pose(i + 1, shaft.track_id)[1]) < 1.0
+
+
 @pytest.mark.parametrize("kinematic", [True, False])
 def test_a_part_its_own_estimate_misses_is_measured_through_the_instrument_fit(clip, lnd_parts, tiny_ckpt,
                                                                                kinematic):

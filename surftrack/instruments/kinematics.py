@@ -117,6 +117,22 @@ class KinematicChain:
         self.joints = joints
         self.order = tuple(order)
 
+    def origin_reach(self, a: str, b: str) -> float:
+        """A bound (mm) on how far apart the origins of parts ``a`` and ``b`` can be, whatever the joint
+        angles: the summed lengths of the joint offsets on the chain between them (a revolute joint turns
+        its part about an axis through its offset's end, so each offset's length is fixed). The LND: 0
+        between the shaft and the wrist, 9.1 mm from either to a jaw, 18.2 between the jaws (which share
+        their origin: a bound, not the distance). KeyError for a part not in the chain."""
+        def up(n: str) -> list[str]:
+            path = [n]
+            while self.joints[path[-1]].parent is not None:
+                path.append(self.joints[path[-1]].parent)
+            return path
+        pa, pb = up(a), up(b)
+        common = next(n for n in pa if n in pb)
+        hops = pa[:pa.index(common)] + pb[:pb.index(common)]
+        return float(sum(np.linalg.norm(self.joints[n].origin) for n in hops))
+
     def forward(self, base_pose: np.ndarray, q: JointState) -> dict[str, np.ndarray]:
         """Pose (4x4, part-to-camera) of every part, for base (shaft at zero roll) pose ``base_pose``."""
         poses: dict[str, np.ndarray] = {}
