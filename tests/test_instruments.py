@@ -18,6 +18,8 @@ from surftrack.instruments import (
     InstrumentError,
     JointLimits,
     JointState,
+    KinematicChain,
+    PartJoint,
     export_bop_models,
     list_instruments,
     load_bop_models,
@@ -571,10 +573,20 @@ def test_the_chain_bounds_how_far_apart_two_parts_origins_can_be():
     assert chain.origin_reach("jaw_left", "shaft") == pytest.approx(9.1)
     assert chain.origin_reach("jaw_left", "jaw_right") == pytest.approx(18.2)
     assert chain.origin_reach("jaw_right", "jaw_right") == 0.0
+    # a deeper tree, offsets everywhere (the common ancestor's own offset is not between its children)
+    deep = KinematicChain({
+        "root": PartJoint(None, (3.0, 0.0, 0.0), (0.0, 0.0, 1.0), {"roll": 1.0}),
+        "a": PartJoint("root", (0.0, 0.0, 5.0), (1.0, 0.0, 0.0), {"pitch": 1.0}),
+        "b": PartJoint("a", (0.0, 7.0, 0.0), (0.0, 1.0, 0.0), {"yaw": 1.0}),
+        "c": PartJoint("root", (11.0, 0.0, 0.0), (0.0, 0.0, 1.0), {"opening": 1.0}),
+    })
+    assert deep.origin_reach("b", "c") == pytest.approx(23.0) and deep.origin_reach("a", "b") == pytest.approx(7.0)
+    with pytest.raises(KeyError):
+        deep.origin_reach("b", "nowhere")
     rng = np.random.default_rng(0)
-    for _ in range(20):
-        q = JointState(*(rng.uniform(-1.2, 1.2, 4)))
-        poses = lnd.forward(np.eye(4), q)
-        for a in poses:
-            for b in poses:
-                assert np.linalg.norm(poses[a][:3, 3] - poses[b][:3, 3]) <= chain.origin_reach(a, b) + 1e-9
+    for _ in range(50):
+        q = JointState(*(rng.uniform(-3.0, 3.0, 4)))
+        for tree, poses in ((chain, lnd.forward(np.eye(4), q)), (deep, deep.forward(np.eye(4), q))):
+            for a in poses:
+                for b in poses:
+                    assert np.linalg.norm(poses[a][:3, 3] - poses[b][:3, 3]) <= tree.origin_reach(a, b) + 1e-9

@@ -71,10 +71,10 @@ RETRO_MAX_TURN_DEG = 90.0
 # an inconclusive estimate (too few inliers, a false box) asked for because the measurements failed keeps
 # the track until this many times max_predicted frames have passed without a measurement
 INCONCLUSIVE_PATIENCE = 3
-# a part that (re)starts while other parts of its instrument are measured must lie within the chain's reach
-# of one of them (KinematicChain.origin_reach) plus this much (mm: those tracks' and the estimate's own
-# errors): an estimate from a sliver of a shaft at the image's edge once placed it a metre off, and the
-# track took 8 frames of refusals to restart
+# a part without a track that starts (first seen, or seen again after a drop) while other parts of its
+# instrument are measured must lie within the chain's reach of one of them (KinematicChain.origin_reach) plus
+# this much (mm: those tracks' and the estimate's own errors): an estimate from a sliver of a shaft at the
+# image's edge once placed it a metre off, and the track took 8 frames of refusals to restart
 REACH_TOLERANCE_MM = 20.0
 
 
@@ -968,9 +968,9 @@ class Tracker:
                 starts.setdefault(id(tr.kf.shared), (tr.kf.shared, {}, est_cov_of(tr, res)))[1][tr.spec.name] = (res.R, res.t)
         for shared, poses, cov in starts.values():
             shared.init(poses, time_s, cov)
-        # the instrument's parts measured within the last few frames, as they stand before this call's
-        # results are fused: where a part that starts now may lie
-        measured = [o for o in self.tracks if o.has_pose and o.since_meas <= cfg.max_predicted]
+        # the parts measured within the last few frames (their poses as this call has fused them so far):
+        # where another part of their instrument that starts now may lie
+        recent = [o for o in self.tracks if o.has_pose and o.since_meas <= cfg.max_predicted]
         unseen: list[tuple[_Track, str]] = []
         for (tr, box, prior, why), res, good in zip(requests, results, good_results):
             est_cov = est_cov_of(tr, res)
@@ -1004,7 +1004,7 @@ class Tracker:
                     tr.note_d2(tr.kf.last_d2, 6, cfg.confidence_nis_weight, accepted=False)
                     tr.refused = (res.R, res.t, est_cov)
                 tr.since_keyframe = 0
-            elif good and self._beyond_reach(tr, res.t, measured):
+            elif good and self._beyond_reach(tr, res.t, recent):
                 tr.info.why_lost = "estimate beyond its instrument's reach"
             elif good:
                 tr.kf.init(res.R, res.t, time_s, est_cov)
@@ -1039,16 +1039,16 @@ class Tracker:
                 tr.info.why_lost = why_lost
 
     def _beyond_reach(self, tr: _Track, t: np.ndarray, measured: Sequence[_Track]) -> bool:
-        """Whether a part starting at ``t`` (mm) lies farther from every one of the ``measured`` parts of
-        its instrument than the chain lets it (:meth:`KinematicChain.origin_reach` plus
-        :data:`REACH_TOLERANCE_MM`); False where none of them is measured or the instrument has no
+        """Whether a part without a track, starting at ``t`` (mm), lies farther from every one of the
+        ``measured`` parts of its instrument than the chain lets it (:meth:`KinematicChain.origin_reach`
+        plus :data:`REACH_TOLERANCE_MM`); False where none of them is measured or the instrument has no
         description."""
         key = f"{tr.spec.instrument}.{tr.spec.instance}"
         inst = self._described.get(key)
         if inst is None or tr.spec.part not in inst.chain.joints:
             return False
         reach = [(o, inst.chain.origin_reach(tr.spec.part, o.spec.part)) for o in measured
-                 if o is not tr and f"{o.spec.instrument}.{o.spec.instance}" == key
+                 if f"{o.spec.instrument}.{o.spec.instance}" == key
                  and o.spec.part in inst.chain.joints]
         return bool(reach) and all(np.linalg.norm(t - o.kf.pose[1]) > r + REACH_TOLERANCE_MM for o, r in reach)
 
