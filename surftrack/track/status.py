@@ -72,7 +72,8 @@ class Diagnostics:
     PnP, ``flow_ms``, ``refresh_ms`` (picking new points). Region: ``region_lines`` correspondence lines,
     ``agreement`` the share of line pixels on the right side of the fitted outline, ``region_ms``.
     ``source``: ``set_pose`` when the pose was given from outside. ``occluded``: frames held in a row
-    while hidden and the rest of the instrument is seen; ``why_lost``: why the part was dropped, or why an estimate did not start it.
+    while hidden and the rest of the instrument is seen; ``why_lost``: why the part was dropped, or why an
+    estimate did not start it.
     """
 
     estimator: str | None = None
