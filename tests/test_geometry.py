@@ -5,10 +5,12 @@ import pytest
 from surftrack.geometry import (
     PinholeCamera,
     box_from_bop,
+    box_iou,
     crop_affine,
     interpolate_pose,
     matrix_from_quat_xyzw,
     project_points,
+    projected_box,
     quat_xyzw_from_matrix,
     rotation_about,
     rotation_angle_deg,
@@ -318,3 +320,14 @@ def test_unwarp_image_carries_a_crop_back_into_the_frame():
     back, _ = unwarp_image(dot, M, (160, 120))
     v, u = np.unravel_index(np.argmax(back), back.shape)
     assert abs(u - (60 - M[0, 2]) / M[0, 0]) <= 0.5 and abs(v - (60 - M[1, 2]) / M[1, 1]) <= 0.5
+
+
+def test_box_helpers():
+    assert box_iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
+    assert box_iou((0, 0, 10, 10), (20, 20, 5, 5)) == 0.0
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    box, inside = projected_box(K, np.eye(3), np.array([0, 0, 20.0]), cube, (100, 100))
+    assert inside == 1.0 and box[0] == pytest.approx(50 - 100 / 19) and box[2] == pytest.approx(200 / 19 + 1)
+    box, inside = projected_box(K, np.eye(3), np.array([-52.0, 0, 20.0]), cube, (100, 100))
+    assert box is None and inside == 0.0

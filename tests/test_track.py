@@ -10,9 +10,10 @@ import pytest
 from mcap.reader import make_reader
 
 from surftrack.cli import main
+from surftrack.geometry import box_iou, projected_box
 from surftrack.io.video import read_video_frames
 from surftrack.pose.preset import PRESETS
-from surftrack.track import PartSpec, TrackConfig, Tracker, box_iou, filter_steps, projected_box
+from surftrack.track import PartSpec, TrackConfig, Tracker, filter_steps
 from surftrack.track.clip_eval import ClipGroundTruth, TrackScore, format_summary
 from surftrack.track.flow import SurfaceSamples, pnp_measurement, pose_distance, track_points, visible_points
 from surftrack.track.smoother import LagSmoother
@@ -381,17 +382,6 @@ def test_the_estimators_position_noise_is_wide_along_the_line_of_sight():
     np.testing.assert_allclose(isotropic[:3, :3], 9.0 * np.eye(3), atol=1e-12)
 
 
-def test_box_helpers():
-    assert box_iou((0, 0, 10, 10), (5, 0, 10, 10)) == pytest.approx(50 / 150)
-    assert box_iou((0, 0, 10, 10), (20, 20, 5, 5)) == 0.0
-    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
-    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
-    box, inside = projected_box(K, np.eye(3), np.array([0, 0, 20.0]), cube, (100, 100))
-    assert inside == 1.0 and box[0] == pytest.approx(50 - 100 / 19) and box[2] == pytest.approx(200 / 19 + 1)
-    box, inside = projected_box(K, np.eye(3), np.array([-52.0, 0, 20.0]), cube, (100, 100))
-    assert box is None and inside == 0.0
-
-
 @pytest.mark.parametrize("articulated", [False, True])
 def test_main_command_end_to_end(clip, tiny_ckpt, tmp_path, capsys, articulated):
     """`surftrack VIDEO --boxes ...`: every frame of every tracked part gets a status, poses go to the
@@ -710,7 +700,7 @@ def test_a_keyframe_pulls_back_a_track_whose_flow_points_were_lifted_off_pose(cl
     assert state.status == "keyframe" and state.info.estimator == "cadence" and state.info.inliers is None
     assert state.info.d2 <= TrackConfig().kalman.gate_chi2, "the keyframe passed the gate"
     # a step returns the confidence a causal run writes: the covariance's, through the running NIS
-    from surftrack.track.tracker import confidence
+    from surftrack.track.state import confidence
     cfg = tracker.cfg
     assert state.confidence == confidence(state.filter_step.P[:3, :3], state.info.nis, 0.0, spec.diameter, cfg) > 0
     te = pose_distance(state.R, state.t, *gt.pose(i + 1, tid)[:2])[1]
@@ -994,7 +984,7 @@ def test_confidence_is_the_probability_of_add10_under_the_inflated_covariance(ln
     measurements disagree with it (NIS > 1) or when smoothing moved the pose."""
     from surftrack.instruments import load_instrument
     from surftrack.track import Diagnostics, PartState, PoseKalman
-    from surftrack.track.tracker import confidence
+    from surftrack.track.state import confidence
 
     lnd = load_instrument("lnd")
     mesh = lnd.parts["wrist"].mesh

@@ -1,4 +1,5 @@
-"""Image boxes: the pixel-edge convention, BOP boxes, and the square crop box around a detection.
+"""Image boxes: the pixel-edge convention, BOP boxes, the square crop box around a detection, and the
+overlap (IoU) of two boxes.
 
 Pixel centres lie at integer coordinates (OpenCV), so pixel u covers the EDGE interval [u - 0.5, u + 0.5]
 in OpenCV coordinates. Boxes here are in pixel-EDGE coordinates, which count from the image's outer
@@ -56,3 +57,12 @@ def square_crop_box(box: Sequence[float], scale: float,
     cx, cy = cx + dx * side, cy + dy * side
     side = max(side * (1.0 + ds), 1.0)
     return (cx - side / 2.0, cy - side / 2.0, cx + side / 2.0, cy + side / 2.0)
+
+
+def box_iou(a: Box, b: Box) -> float:
+    """Intersection over union of two (x, y, w, h) boxes."""
+    ax1, ay1, bx1, by1 = a[0] + a[2], a[1] + a[3], b[0] + b[2], b[1] + b[3]
+    iw, ih = max(0.0, min(ax1, bx1) - max(a[0], b[0])), max(0.0, min(ay1, by1) - max(a[1], b[1]))
+    inter = iw * ih
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return float(inter / union) if union > 0 else 0.0

@@ -2,7 +2,8 @@
 
 Pixel (u, v) has its centre at integer coordinates; x right, y down, z forward; units mm.
 :func:`project_points` is ``cv2.projectPoints`` without distortion, for points already in the camera frame
-(pose them first with :func:`surftrack.geometry.transform_points`).
+(pose them first with :func:`surftrack.geometry.transform_points`); :func:`projected_box` is the image box
+a posed model covers.
 A crop box is given in pixel-edge coordinates ``(x0, y0, x1, y1)``: the crop covers the image area from
 edge x0 to edge x1, so a full image is ``(0, 0, W, H)`` (:mod:`surftrack.geometry.boxes`).
 :func:`crop_affine` returns the 2x3 matrix for ``cv2.warpAffine`` and the camera of the crop, consistent
@@ -16,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from surftrack.geometry.boxes import Box
-from surftrack.geometry.transforms import skew
+from surftrack.geometry.transforms import se3, skew, transform_points
 
 
 def project_points(K: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -55,6 +56,28 @@ def project_pose_jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: n
     P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / z**2
     dX = np.concatenate([np.broadcast_to(np.eye(3), (len(xyz), 3, 3)), -R @ skew(xyz)], axis=2)  # dXc / d(dt, dtheta)
     return uv, P @ dX
+
+
+
+def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray,
+                  size: tuple[int, int]) -> tuple[Box | None, float]:
+    """The image box of model points ``vertices`` (N, 3, mm) at the model-to-camera pose ``R``, ``t``:
+    (the pixel-edge (x, y, w, h) box of their projections clipped to the image of ``size`` (W, H), the
+    fraction of the unclipped box's area inside the image). (None, 0) when they lie behind the camera or
+    entirely outside the image."""
+    X = transform_points(se3(R, t), vertices)
+    front = X[:, 2] > 1e-3
+    if front.sum() < 3:
+        return None, 0.0
+    uv = project_points(K, X)[front]
+    x0, y0 = uv.min(0)
+    x1, y1 = uv.max(0) + 1.0  # pixel-edge box around pixel centres
+    W, H = size
+    area = (x1 - x0) * (y1 - y0)
+    cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, float(W)), min(y1, float(H))
+    if cx1 <= cx0 or cy1 <= cy0 or area <= 0:
+        return None, 0.0
+    return (cx0, cy0, cx1 - cx0, cy1 - cy0), float((cx1 - cx0) * (cy1 - cy0) / area)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@
   tip was read off an instrument's tracked state.
 
 ``min_confidence``: a frame counts as tracked only when its logged confidence (the probability that
-the part is within ADD-10, :func:`~surftrack.track.tracker.confidence`) is at least this (a pose
+the part is within ADD-10, :func:`~surftrack.track.state.confidence`) is at least this (a pose
 without a status, or a status without a confidence, then does not count); a tool-tip frame only when
 every part of its instrument logged at that time is (a hidden jaw, logged lost at confidence 0, holds
 the tip out too). Motion through frames the tracker doubts (a tool entering close to the lens, a

@@ -28,7 +28,7 @@ from surftrack.instruments import (
     load_instrument,
 )
 from surftrack.track.status import POSED
-from surftrack.track.tracker import PartState
+from surftrack.track.state import PartState
 
 
 class ArticulationTracker:

@@ -37,7 +37,7 @@ from surftrack.geometry import se3
 from surftrack.instruments import Instrument, RollTwin
 from surftrack.track.flow import pose_distance
 from surftrack.track.status import starts_anew
-from surftrack.track.tracker import PartState
+from surftrack.track.state import PartState
 
 
 def _instrument_groups(states: list[PartState]) -> dict[tuple[str, int], list[PartState]]:

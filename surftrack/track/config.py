@@ -126,7 +126,7 @@ class TrackConfig:
     of the view, which the track lags behind and its gate refuses; the causal run is not changed).
 
     ``confidence_add``, ``confidence_scale``, ``confidence_nis_weight``: a written pose's confidence
-    (:func:`~surftrack.track.tracker.confidence`) is the probability that its position error is within
+    (:func:`~surftrack.track.state.confidence`) is the probability that its position error is within
     ``confidence_add`` times the part's diameter (0.1: ADD-10's threshold), the error's covariance the
     filter's, scaled by the track's running normalised innovation (each measurement's d2 / dof entering
     with weight ``confidence_nis_weight``), plus how far smoothing moved the pose, times
