@@ -5,9 +5,11 @@ recovers and re-measures parts on keyframes; between them each instrument's silh
 statistics along lines normal to its rendered outline (:mod:`.region`), measures it (pyramidal LK on
 model points plus PnP, :mod:`.flow`, is the option); :class:`PoseKalman` (:mod:`.kalman`, 12-state
 error-state constant velocity, gated before update) fuses them, one per part, or the parts of a
-described instrument share one articulated state (:mod:`.instrument`, ``articulated``). :mod:`.inputs` validates the inputs of a run (video, intrinsics, det.json / COCO boxes);
-:mod:`.state` holds what it reports per part and frame; :mod:`.config` holds the settings (``configs/track/default.yaml``); :mod:`.smoother` smooths the filter's
-states backward for offline runs; :mod:`.status` names a part's status on a frame and its diagnostics.
+described instrument share one articulated state (:mod:`.instrument`, ``articulated``). :mod:`.state`
+holds what it reports per part and frame (:class:`PartState`); :mod:`.inputs` validates the inputs of a
+run (video, intrinsics, det.json / COCO boxes); :mod:`.config` holds the settings
+(``configs/track/default.yaml``); :mod:`.smoother` smooths the filter's states backward for offline runs;
+:mod:`.status` names a part's status on a frame and its diagnostics.
 """
 
 from surftrack.track.config import TrackConfig, TrackConfigError, load_track_config
