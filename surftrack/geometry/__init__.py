@@ -6,7 +6,14 @@ warps (:func:`crop_affine`, :func:`crop_warp`, :mod:`.crop`: into a crop and, :f
 """
 
 from surftrack.geometry.boxes import Box, box_from_bop, box_iou, square_crop_box, xywh_from_xyxy, xyxy_from_xywh
-from surftrack.geometry.camera import PinholeCamera, crop_affine, crop_warp, project_pose_jacobian, project_points, projected_box
+from surftrack.geometry.camera import (
+    PinholeCamera,
+    crop_affine,
+    crop_warp,
+    project_pose_jacobian,
+    project_points,
+    projected_box,
+)
 from surftrack.geometry.crop import crop_with_rotation, pose_in_crop, unwarp_image, warp_image
 from surftrack.geometry.transforms import (
     cross3,
@@ -30,9 +37,10 @@ from surftrack.geometry.transforms import (
 )
 
 __all__ = [
-    "Box", "PinholeCamera", "box_from_bop", "box_iou", "crop_affine", "crop_warp", "cross3", "crop_with_rotation", "interpolate_pose",
-    "matrix_from_quat_xyzw", "pose_in_crop", "project_points", "project_pose_jacobian", "projected_box", "quat_xyzw_from_matrix", "rotation_about",
-    "rotation_angle_deg", "se3", "se3_compose", "se3_exp", "se3_inv", "se3_log", "se3_split", "skew", "slerp",
-    "so3_exp", "so3_log", "so3_right_jacobian", "square_crop_box", "transform_points", "unwarp_image", "warp_image", "xywh_from_xyxy",
-    "xyxy_from_xywh",
+    "Box", "PinholeCamera", "box_from_bop", "box_iou", "crop_affine", "crop_warp", "cross3",
+    "crop_with_rotation", "interpolate_pose", "matrix_from_quat_xyzw", "pose_in_crop", "project_points",
+    "project_pose_jacobian", "projected_box", "quat_xyzw_from_matrix", "rotation_about", "rotation_angle_deg",
+    "se3", "se3_compose", "se3_exp", "se3_inv", "se3_log", "se3_split", "skew", "slerp", "so3_exp", "so3_log",
+    "so3_right_jacobian", "square_crop_box", "transform_points", "unwarp_image", "warp_image",
+    "xywh_from_xyxy", "xyxy_from_xywh",
 ]

@@ -58,7 +58,6 @@ def project_pose_jacobian(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: n
     return uv, P @ dX
 
 
-
 def projected_box(K: np.ndarray, R: np.ndarray, t: np.ndarray, vertices: np.ndarray,
                   size: tuple[int, int]) -> tuple[Box | None, float]:
     """The image box of model points ``vertices`` (N, 3, mm) at the model-to-camera pose ``R``, ``t``:

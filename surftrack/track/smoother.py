@@ -173,7 +173,7 @@ class LagSmoother:
     backward steps per part. ``prior``: the smoother's own motion prior (:class:`SmootherPrior`; None:
     the filter's); the filter is run again under it over the buffer, continuing from the last released
     frame's re-filtered step. ``push(item, steps, revisions)``: revised steps of earlier frames by key,
-    for a track that ended (:func:`~.tracker.ended_revisions`)."""
+    for a track that ended (:func:`~.state.ended_revisions`)."""
 
     def __init__(self, lag: int, chunk: int | None = None, prior: SmootherPrior | None = None):
         if lag < 0:
@@ -193,7 +193,7 @@ class LagSmoother:
              revisions: Mapping[str, Sequence[FilterStep]] | None = None
              ) -> list[tuple[Any, dict[str, FilterStep | None]]]:
         """``revisions``: per key, revised steps of earlier frames that no step of this frame carries (a
-        track that ended, :func:`~.tracker.ended_revisions`)."""
+        track that ended, :func:`~.state.ended_revisions`)."""
         steps = dict(steps)
         if self.lag:
             for key, revised in (revisions or {}).items():
