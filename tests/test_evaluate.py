@@ -427,6 +427,32 @@ sets:
     assert err.count("\n") == 0 and "bad.yaml" in err and "sed" in err
 
 
+@pytest.mark.parametrize("text, problem", [
+    ("images: many\nsets: {a: {seed: 1}}\n", "'images' must be a positive integer"),
+    ("sets: {a: [1, 2]}\n", "set 'a' must be a mapping"),
+    ("sets: [a, b]\n", "a suite needs 'sets'"),
+    ("sets: {a: {seed: 1, overrides: x}}\n", "'overrides' must be a mapping"),
+    ("sets: {a: {seed: 1}}\nclips: {c: 5}\n", "clip 'c' must be a mapping"),
+])
+def test_a_malformed_suite_file_is_one_named_problem(tmp_path, text, problem):
+    from surftrack.pose.suite import SuiteError, load_suite, load_suite_clips
+
+    (tmp_path / "suite.yaml").write_text(text)
+    with pytest.raises(SuiteError) as e:
+        load_suite(tmp_path / "suite.yaml")
+        load_suite_clips(tmp_path / "suite.yaml")
+    assert str(tmp_path / "suite.yaml") in str(e.value) and problem in str(e.value)
+
+
+def test_a_suite_clip_with_an_unreadable_record_is_refused(tmp_path):
+    from surftrack.pose.suite import SuiteClip, SuiteError, make_suite_clips
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "suite_clip.json").write_text("{not json")
+    with pytest.raises(SuiteError, match="suite_clip.json: not a JSON record"):
+        make_suite_clips([SuiteClip("a", 1, 2.0, 15.0)], tmp_path)
+
+
 def test_eval_by_cause_bins_every_instance(tiny, tmp_path, capsys):
     """`eval --by-cause`: per condition one row for all parts and one per part, the instance counts of a
     row adding up to the instances evaluated; a plain BOP set gets the tables that need no joint angles."""

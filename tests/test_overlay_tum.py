@@ -319,3 +319,16 @@ def test_tum_writer_names_closing_and_errors(tmp_path):
         read_tum(bad)
     with pytest.raises(ValueError, match="missing.tum"):
         read_tum(tmp_path / "missing.tum")
+
+
+def test_tum_writer_removes_an_earlier_runs_files_only(tmp_path):
+    with TumWriter(tmp_path) as w:
+        w.add("shaft", 0.0, np.eye(3), [1.0, 2.0, 3.0])
+        w.add("wrist", 0.0, np.eye(3), [1.0, 2.0, 3.0])
+    mine = tmp_path / "notes.tum"
+    mine.write_text("# my own trajectory\n0.0 0 0 0 0 0 0 1\n")
+    with TumWriter(tmp_path) as w:  # a second run that never poses the wrist
+        w.add("shaft", 0.0, np.eye(3), [4.0, 5.0, 6.0])
+    assert not (tmp_path / "wrist.tum").exists()
+    assert mine.exists()
+    assert np.allclose(read_tum(tmp_path / "shaft.tum")[2][0], [4.0, 5.0, 6.0])

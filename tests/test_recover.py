@@ -47,6 +47,11 @@ def test_recover_keeps_every_readable_message(log, tmp_path, capsys, keep):
         assert len(got) >= keep * len(original) - 150  # at most a chunk or so is lost
     with open(fixed, "rb") as f:
         assert next(make_reader(f).iter_metadata()).metadata == {"video": "v.mp4"}
+    if keep == 1.0:  # the summary's copies of schemas and channels are not registered a second time
+        with open(fixed, "rb") as f, open(log, "rb") as g:
+            s, t = make_reader(f).get_summary(), make_reader(g).get_summary()
+        assert sorted(c.topic for c in s.channels.values()) == sorted(c.topic for c in t.channels.values())
+        assert len(s.schemas) == len(t.schemas)
 
 
 def test_recover_refuses_what_it_cannot_do(log, tmp_path, capsys):

@@ -227,7 +227,7 @@ def analyze_mcap(path: str | os.PathLike, tracked_statuses: Iterable[str] = POSE
             elif (m := _JOINTS_STD.match(topic)) and schema == "foxglove.JointStates":
                 joints_std.setdefault(m.group(1), []).append(
                     {j["name"]: float(j["position"]) for j in msg["joints"] if "position" in j})
-    except (KeyError, TypeError, ValueError) as e:
+    except (AttributeError, KeyError, TypeError, ValueError) as e:  # AttributeError: a field of the wrong type
         raise ValueError(f"{path}: malformed tracking message ({type(e).__name__}: {e})") from None
 
     parts = {}

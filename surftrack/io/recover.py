@@ -72,9 +72,10 @@ def recover_mcap(broken: str | Path, fixed: str | Path) -> RecoveredMcap:
             writer.start(profile=first.profile, library=first.library or "surftrack recover")
             try:
                 for rec in records:
-                    if isinstance(rec, Schema):
+                    # a finished file's summary section repeats every schema and channel: register each once
+                    if isinstance(rec, Schema) and rec.id not in schemas:
                         schemas[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
-                    elif isinstance(rec, Channel):
+                    elif isinstance(rec, Channel) and rec.id not in channels:
                         channels[rec.id] = writer.register_channel(rec.topic, rec.message_encoding,
                                                                    schemas.get(rec.schema_id, 0), rec.metadata)
                     elif isinstance(rec, Message) and rec.channel_id in channels:

@@ -59,6 +59,7 @@ def _tum_line(time_s: float, R, t_mm) -> str:
 class TumWriter:
     """Writes one TUM trajectory file per part into ``directory`` (created if missing).
 
+    TUM files an earlier TumWriter left in ``directory`` are removed (others are left alone).
     :meth:`add` appends a pose; a part's file is created (replacing an older one) at its first pose, and
     every line is flushed at once, so a crash loses nothing already added. Two part names that give the
     same file name (see :func:`tum_filename`) raise ``ValueError``. Use as a context manager, or call
@@ -72,6 +73,15 @@ class TumWriter:
         except OSError as e:
             raise OSError(e.errno, f"cannot create the TUM output directory {str(self.directory)!r}: "
                                    f"{e.strerror}") from e
+        # an earlier run's file of a part this run never poses must not pass for this run's
+        for old in self.directory.glob("*.tum"):
+            try:
+                with open(old, encoding="utf-8") as f:
+                    ours = f.readline().startswith(_HEADER.split("{", 1)[0])
+                if ours:
+                    old.unlink()
+            except (OSError, UnicodeDecodeError):
+                pass  # not a file of ours, or not ours to remove
         self._files: dict[str, TextIO] = {}
         self._paths: dict[str, Path] = {}
         self._part_of_file: dict[str, str] = {}

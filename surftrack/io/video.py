@@ -86,8 +86,8 @@ class VideoWriter:
             raise ValueError(f"{self.path}: expected a uint8 RGB frame of shape {(self.height, self.width, 3)}, "
                              f"got {rgb.dtype} {rgb.shape}")
         t = self.frames_written / self.fps if pts_seconds is None else float(pts_seconds)
-        if not t >= 0.0:
-            raise ValueError(f"{self.path}: frame time must be >= 0 s, got {t}")
+        if not 0.0 <= t < float("inf"):
+            raise ValueError(f"{self.path}: frame time must be finite and >= 0 s, got {t}")
         pts = int(round(t / TIME_BASE))
         if self._last_pts is not None and pts <= self._last_pts:
             raise ValueError(f"{self.path}: frame time {t:.6f} s does not increase "

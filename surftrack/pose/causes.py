@@ -49,7 +49,8 @@ def instance_conditions(result: Mapping, data_dir: str | Path, split: str = "tes
     out = []
     for r in result["instances"]:
         inst = gt[(int(r["scene_id"]), int(r["im_id"]), int(r["gt_index"]))]
-        values = {"z": float(inst.t[2]), "side": float(max(inst.bbox_visib[2], inst.bbox_visib[3])),
+        w, h = inst.bbox_visib[2:]  # BOP: xmax - xmin over pixel indices; an unseen instance has -1
+        values = {"z": float(inst.t[2]), "side": float(max(w, h) + 1 if min(w, h) >= 0 else 0),
                   "visib": float(inst.visib_fract)}
         values.update({k: abs(float(v)) for k, v in (inst.extra.get("joints_deg") or {}).items()})
         twin = r.get("add10_twin_surgripe")

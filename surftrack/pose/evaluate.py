@@ -170,7 +170,9 @@ def accuracy_curve(errors: Iterable[float], thresholds: np.ndarray) -> list[floa
 
 
 # ------------------------------------------------------------------------------------------ evaluation
-def _unique_labels(infos: Mapping[int, tuple[str, str]]) -> dict[int, str]:
+def part_labels(infos: Mapping[int, tuple[str, str]]) -> dict[int, str]:
+    """obj_id -> the label results and tables use: "instrument part" (the part alone when the instrument is
+    unnamed), with " (obj N)" where two parts would read alike. ``infos``: obj_id -> (instrument, part)."""
     raw = {o: (name if inst in ("", "unknown") else f"{inst} {name}") for o, (inst, name) in infos.items()}
     counts = defaultdict(int)
     for v in raw.values():
@@ -295,7 +297,7 @@ def _evaluate(checkpoint, data_dir, split: str = "test", preset="accurate", max_
                            f"{sorted(known)} to evaluate")
 
     obj_used = sorted({i.obj_id for k in keys for i in by_image[k]})
-    labels = _unique_labels({o: (known[o].instrument, known[o].name) for o in obj_used})
+    labels = part_labels({o: (known[o].instrument, known[o].name) for o in obj_used})
     parts_info, points = {}, {}
     for o in obj_used:
         part = bop.models[o]

@@ -103,15 +103,21 @@ def load_suite(path: str | Path | None = None) -> list[SuiteSet]:
     p, doc = _read_suite(path)
     out = []
     for name, spec in doc["sets"].items():
+        if not isinstance(spec or {}, dict):
+            raise SuiteError(f"{p}: set {name!r} must be a mapping of settings, got {spec!r}")
         spec = dict(spec or {})
         bad = set(spec) - {"config", "seed", "images", "overrides", "about"}
         if bad:
             raise SuiteError(f"{p}: set {name!r}: unknown key(s) {sorted(bad)}")
         if not isinstance(spec.get("seed"), int):
             raise SuiteError(f"{p}: set {name!r} needs an integer 'seed'")
-        out.append(SuiteSet(str(name), str(spec.get("config", "default")), int(spec["seed"]),
-                            int(spec.get("images", doc.get("images", 100))), dict(spec.get("overrides") or {}),
-                            str(spec.get("about", ""))))
+        images = spec.get("images", doc.get("images", 100))
+        if not isinstance(images, int) or isinstance(images, bool) or images < 1:
+            raise SuiteError(f"{p}: set {name!r}: 'images' must be a positive integer, got {images!r}")
+        if not isinstance(spec.get("overrides") or {}, dict):
+            raise SuiteError(f"{p}: set {name!r}: 'overrides' must be a mapping of synthesis settings")
+        out.append(SuiteSet(str(name), str(spec.get("config", "default")), int(spec["seed"]), images,
+                            dict(spec.get("overrides") or {}), str(spec.get("about", ""))))
     return out
 
 
@@ -123,6 +129,8 @@ def load_suite_clips(path: str | Path | None = None) -> list[SuiteClip]:
         raise SuiteError(f"{p}: 'clips' must map clip names to {{seed, seconds, fps}}")
     out = []
     for name, spec in clips.items():
+        if not isinstance(spec or {}, dict):
+            raise SuiteError(f"{p}: clip {name!r} must be a mapping of settings, got {spec!r}")
         spec = dict(spec or {})
         bad = set(spec) - {"seed", "seconds", "fps", "about", "roll_deg", "roll_swing_deg"}
         if bad:
@@ -164,7 +172,12 @@ def make_suite_clips(clips: Sequence[SuiteClip], root: str | Path, instrument: s
         stamp = c.stamp(instrument)
         marker = folder / "suite_clip.json"
         if marker.is_file():
-            if json.loads(marker.read_text()) != stamp:
+            try:
+                made = json.loads(marker.read_text())
+            except ValueError:
+                raise SuiteError(f"{marker}: not a JSON record of a suite clip's settings; remove the clip "
+                                 f"folder or use another --suite-dir") from None
+            if made != stamp:
                 raise SuiteError(f"{folder}: made with other settings ({marker.read_text().strip()}); "
                                  f"remove it or use another --suite-dir")
         else:
@@ -227,20 +240,24 @@ def evaluate_suite(checkpoint, sets: Sequence[SuiteSet], folders: Mapping[str, P
     "twin": pooled mean with the instruments' roll twins counted as a symmetry (None without), "images": n}.
     ``kwargs`` go to the evaluation (preset, kinematic, device, instruments, ...)."""
     from surftrack.pose.estimator import PoseEstimator
-    from surftrack.pose.evaluate import evaluate_seeds
+    from surftrack.pose.evaluate import evaluate_seeds, part_labels
     from surftrack.pose.preset import get_preset
 
     preset = kwargs.pop("preset", "fast")
     est = checkpoint if isinstance(checkpoint, PoseEstimator) else PoseEstimator(
-        checkpoint, get_preset(preset) if isinstance(preset, str) else preset, device=kwargs.pop("device", None))
+        checkpoint, get_preset(preset) if isinstance(preset, str) else preset, device=kwargs.pop("device", None),
+        instruments=kwargs.get("instruments", BUILTIN))
+    # the table's labels, as evaluate() writes them (a part found by its obj_id, whatever its label in a set)
+    labels = part_labels({info.obj_id: (info.instrument, info.name) for info in est.model.parts})
     table = {}
     for s in sets:
         results = evaluate_seeds(est, folders[s.name], list(seeds), split="train", **kwargs)
         key = "add10_surgripe"
         # every part of the model, in its order; None where the set has no instance of it
-        parts = {label: float(np.mean([r["parts"][label]["all"][key] for r in results]))
-                 if label in results[0]["parts"] else None
-                 for label in (f"{info.instrument} {info.name}" for info in est.model.parts)}
+        parts = {}
+        for info in est.model.parts:
+            got = [[v["all"][key] for v in r["parts"].values() if v["obj_id"] == info.obj_id] for r in results]
+            parts[labels[info.obj_id]] = float(np.mean([g[0] for g in got])) if got[0] else None
         per_seed = [float(r["overall"]["all"][key]) for r in results]
         twin = [r["overall"]["all"].get("add10_twin_surgripe") for r in results]
         table[s.name] = {"parts": parts, "all": float(np.mean(per_seed)), "per_seed": per_seed,
