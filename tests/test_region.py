@@ -105,7 +105,9 @@ def test_region_fit_of_a_free_part_and_without_colours(scene):
     model = PoseModel("wrist", Rp, tp)
     prior = np.diag([4.0] * 3 + [np.radians(5) ** 2] * 3)
     assert rt.measure(image, contours, model, prior) == {}  # no colour model yet: nothing claimed
-    rt.learn(image, "lnd", masks["lnd"])
+    assert not rt.learn(image, "lnd", np.zeros_like(masks["lnd"]))  # an empty mask teaches nothing
+    assert not rt.colors["lnd"].ready and rt.measure(image, contours, model, prior) == {}
+    assert rt.learn(image, "lnd", masks["lnd"])
     res = rt.measure(image, contours, model, prior)["wrist"]
     rt.release()
     # what a lone part's silhouette pins: its place across the image (x, y), and its turns

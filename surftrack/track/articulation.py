@@ -5,11 +5,11 @@ instrument is tracked part by part (``articulated: false``); with one articulate
 :class:`ArticulationTracker` fits each instrument's articulated configuration (base pose on the shaft
 axis, roll, wrist pitch, wrist yaw, jaw opening; :func:`surftrack.instruments.fit_configuration`) to
 the poses of its parts that have one this frame, weighted by their confidence and warm-started from the
-previous fit. The trocar (remote centre of motion) is estimated from the fitted shaft axes once enough
-of them (``trocar_after``) with a measured shaft have been seen, re-estimated every ``trocar_every``
-fits, and used as a constraint from then on; it stays unknown while the axes barely change direction
-(they then do not pin a point). The trocar is a point in camera coordinates, so it assumes the
-endoscope holds still: when ``trocar_patience`` fits in a row with a shaft are poor under it (residuals
+previous fit. The trocar (remote centre of motion) is estimated from the measured shaft's axes (its own
+pose, not the fit's, which the trocar pulls) once enough of them (``trocar_after``) have been seen,
+re-estimated every ``trocar_every`` fits, and used as a constraint from then on; it stays unknown while
+the axes barely change direction (they then do not pin a point). The trocar is a point in camera
+coordinates, so it assumes the endoscope holds still: when ``trocar_patience`` fits in a row with a shaft are poor under it (residuals
 beyond the ``FitConfig`` thresholds: the camera moved, or the first estimate was wrong), it is forgotten
 with the axes seen so far and estimated again from the axes that follow.
 """
@@ -20,6 +20,7 @@ from collections import deque
 
 import numpy as np
 
+from surftrack.geometry import se3
 from surftrack.instruments import (
     Instrument,
     JointFit,
@@ -63,7 +64,8 @@ class ArticulationTracker:
             return None
         self.prev = fit
         if self.root in fit.parts_used and fit.ok:
-            self.axes.append((fit.base_R, fit.base_t))
+            # the root's own axis, not the fit's: a fit pulled through the trocar would confirm a wrong one
+            self.axes.append(self._measured_axis(fit, poses[self.root]))
             self._since_trocar += 1
             if len(self.axes) >= self.trocar_after and (self.trocar is None or self._since_trocar >= self.trocar_every):
                 self._since_trocar = 0
@@ -72,3 +74,10 @@ class ArticulationTracker:
                 except ValueError:
                     pass  # near-parallel axes: the point is not determined yet
         return fit
+
+    def _measured_axis(self, fit: JointFit, root_pose: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The base pose (R, t) that puts the root part at its measured ``root_pose``, the root's fixed
+        offset from the base taken from ``fit``: its shaft axis is the measurement's alone."""
+        base_in_root = np.linalg.inv(fit.part_poses(self.instrument)[self.root]) @ fit.base_pose
+        T = se3(*root_pose) @ base_in_root
+        return T[:3, :3], T[:3, 3]

@@ -141,17 +141,18 @@ class ColorModel:
         h = np.bincount(self.index(rgb).ravel(), minlength=self.bins**3).astype(np.float64) + 1e-3
         return h / h.sum()
 
-    def update(self, fg_rgb: np.ndarray, bg_rgb: np.ndarray, rate: float = 1.0) -> None:
+    def update(self, fg_rgb: np.ndarray, bg_rgb: np.ndarray, rate: float = 1.0) -> bool:
         """Blend the histograms of these foreground and background colours (N, 3) in at ``rate``
-        (1 = replace)."""
+        (1 = replace); False (nothing learnt) with fewer than 10 of either."""
         if len(fg_rgb) < 10 or len(bg_rgb) < 10:
-            return
+            return False
         f, b = self._hist(fg_rgb), self._hist(bg_rgb)
         if self.fg is None or rate >= 1.0:
             self.fg, self.bg = f, b
         else:
             self.fg = (1 - rate) * self.fg + rate * f
             self.bg = (1 - rate) * self.bg + rate * b
+        return True
 
     @property
     def ready(self) -> bool:
@@ -290,11 +291,11 @@ class RegionTracker:
         return mu * scale, var * scale**2, valid, pf
 
     def learn(self, image: np.ndarray, group: str, mask: np.ndarray, band_px: int = 12, gap_px: int = 2,
-              rate: float = 1.0, within: np.ndarray | None = None) -> None:
+              rate: float = 1.0, within: np.ndarray | None = None) -> bool:
         """Update an instrument's colour model from its silhouette ``mask`` (foreground, less its edge
         pixels) and a band of ``band_px`` around it (background) from ``gap_px`` out, in ``image``: a mask
         off by a pixel or two then mixes little of one side into the other. ``within`` (H, W bool): only
-        these pixels are learnt from (where the mask is known)."""
+        these pixels are learnt from (where the mask is known). False when too few pixels left nothing learnt."""
         m8 = mask.astype(np.uint8)
         near = cv2.dilate(m8, np.ones((2 * gap_px + 1,) * 2, np.uint8)) > 0
         ring = (cv2.dilate(m8, np.ones((2 * band_px + 1,) * 2, np.uint8)) > 0) & ~near
@@ -302,7 +303,7 @@ class RegionTracker:
         if within is not None:
             ring &= within
             inner &= within
-        self.colors[group].update(image[inner], image[ring], rate)
+        return self.colors[group].update(image[inner], image[ring], rate)
 
     def measure(self, image: np.ndarray, contours: Mapping[str, Contour], model: PoseModel,
                 prior_cov: np.ndarray) -> dict[str, RegionResult]:

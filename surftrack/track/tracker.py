@@ -540,8 +540,8 @@ class Tracker:
             others = functools.reduce(np.logical_or, [m for h, m in fg.items() if h != g], np.zeros_like(mask))
             # the first masks replace what the predicted silhouette started
             rate = self.cfg.region_mask_rate if g in self._mask_colors else 1.0
-            rt.learn(frame_rgb, g, mask & ~others, rate=rate, within=seen[g] & ~others)
-            self._mask_colors.add(g)
+            if rt.learn(frame_rgb, g, mask & ~others, rate=rate, within=seen[g] & ~others):
+                self._mask_colors.add(g)
 
     def _measure_shared(self, frame_rgb: np.ndarray, contours: Mapping, key: str, trs: list[_Track]) -> None:
         """The region measurement of an instrument with one articulated state: one fit of the whole
