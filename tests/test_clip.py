@@ -272,6 +272,25 @@ def test_single_tool_clip(tmp_path):
     load_detections(tmp_path / "det.json")
 
 
+def test_a_clip_stopped_part_way_leaves_no_earlier_truth_beside_its_video(tmp_path, monkeypatch):
+    import surftrack.synth.clip as clip_module
+
+    cfg = ClipConfig(seconds=0.4, fps=10, width=W, height=H, second_instrument=None, leave_view=False)
+    make_clip(tmp_path, "scissors", cfg, seed=1)
+    assert (tmp_path / "gt.json").is_file()
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):  # the run killed while it renders the second clip
+        raise Stop
+
+    monkeypatch.setattr(clip_module, "apply_effects", stop)
+    with pytest.raises(Stop):
+        make_clip(tmp_path, "scissors", cfg, seed=2)
+    assert not any((tmp_path / f).exists() for f in ("camera.json", "gt.json", "det.json"))
+
+
 def test_the_roll_starts_where_asked_and_wanders_as_far_as_asked(tmp_path):
     """A tool rolled away from the camera (the jaws opening away from it) for a whole clip: what the
     estimator's roll twin needs to be measured on (surftrack.instruments.twin)."""

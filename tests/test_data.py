@@ -126,6 +126,20 @@ def _break(kind, d):
     if kind == "json":
         (scene / "scene_camera.json").write_text('{"0": {"cam_K": [1, 2,')
         return "scene_camera.json: malformed JSON", {}
+    if kind == "ply":
+        ply = next((d / "models").glob("obj_*.ply"))
+        ply.write_bytes(ply.read_bytes()[:200])  # cut off mid-write
+        return f"{ply.name}: cannot read the model", {}
+    if kind == "visib_null":
+        infos = json.loads((scene / "scene_gt_info.json").read_text())
+        infos["0"][0]["visib_fract"] = None
+        (scene / "scene_gt_info.json").write_text(json.dumps(infos))
+        return "image 0 entry 0: bad value", {}
+    if kind == "image_key":
+        gts = json.loads((scene / "scene_gt.json").read_text())
+        gts["first"] = gts.pop("0")
+        (scene / "scene_gt.json").write_text(json.dumps(gts))
+        return "image keys must be image numbers", {}
     if kind == "filter_visib":
         return "removed by min_visib_fract=1.5", {"min_visib_fract": 1.5}
     if kind == "filter_px":
@@ -136,7 +150,7 @@ def _break(kind, d):
 
 
 @pytest.mark.parametrize("kind", ["root", "models_dir", "models_info", "no_models", "no_scenes", "scene_gt", "image",
-                                  "json", "filter_visib", "filter_px", "obj_ids"])
+                                  "json", "ply", "visib_null", "image_key", "filter_visib", "filter_px", "obj_ids"])
 def test_broken_dataset_fails_with_one_clear_message(root, tmp_path, kind):
     d = copy_dataset(root, tmp_path / "ds")
     needle, kwargs = _break(kind, d)

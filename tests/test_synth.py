@@ -176,6 +176,9 @@ def test_joint_sampling_follows_the_instruments_limits_or_the_papers_ranges(name
     assert paper.joint_source == "ranges"
     qs = np.array([[getattr(sample_joints(inst, paper, rng), n) for n in JOINT_NAMES] for _ in range(500)])
     assert np.degrees(np.abs(qs[:, 0])).max() <= 30 + 1e-6 and np.degrees(np.abs(qs[:, 1])).max() <= 60 + 1e-6
+    for k, n in enumerate(JOINT_NAMES):  # within the limits, and 0 without one, here too
+        lo, hi = inst.limits.ranges.get(n, (0.0, 0.0))
+        assert lo - 1e-9 <= qs[:, k].min() and qs[:, k].max() <= hi + 1e-9, n
 
 
 def test_normals_face_the_camera(dataset):
@@ -219,6 +222,16 @@ def test_bad_config_is_reported_with_its_file(tmp_path):
     bad.write_text("posse: {}\n")
     with pytest.raises(ConfigError, match="unknown key"):
         load_synth_config(bad)
+    # values a worker or a comparison would only trip over later: one line naming the file
+    for text, why in (("effects: {noise: [0, 2]}", "effects: unknown camera effect"),
+                      ("effects: {blur_prob: 2}", "effects: blur_prob must be a probability"),
+                      ("tissue: {tilt_deg: 30}", r"tissue.tilt_deg: expected a \[lo, hi\] range"),
+                      ("image: {width: 0}", "even positive integers"),
+                      ("image: {width: '640'}", "even positive integers"),
+                      ("two_instruments_prob: '0.3'", "bad.yaml")):
+        bad.write_text(text + "\n")
+        with pytest.raises(ConfigError, match=f"bad.yaml.*{why}" if why != "bad.yaml" else why):
+            load_synth_config(bad)
 
 
 def test_roll_zero_sets_which_way_the_jaws_open():
@@ -294,6 +307,14 @@ def test_resume_takes_an_alias_for_its_instrument(dataset):
     _check_resume(root, load_synth_config(overrides={**SMALL, "instruments": ["lnd", "scissors"]}), 5)
     with pytest.raises(ConfigError, match="another seed or configuration"):
         _check_resume(root, load_synth_config(overrides={**SMALL, "instruments": ["lnd", "cadiere_forceps"]}), 5)
+
+
+def test_resume_refuses_a_damaged_card_in_one_line(tmp_path):
+    from surftrack.synth.generate import _check_resume
+
+    (tmp_path / "dataset_card.json").write_text('{"config": {"image"')  # cut off mid-write
+    with pytest.raises(ConfigError, match="dataset_card.json: not a dataset card"):
+        _check_resume(tmp_path, load_synth_config(overrides=SMALL), 5)
 
 
 def test_instrument_aliases_and_duplicates(tmp_path):

@@ -213,3 +213,17 @@ def test_bad_tissue_sources_name_the_file(tmp_path, mesh_file):
             load_tissue_mesh(tmp_path / name)
     with pytest.raises(ValueError, match="junk.ply: cannot read the image"):
         read_image(tmp_path / "junk.ply")
+
+
+def test_a_bad_tissue_file_stops_synthesis_before_its_first_image(tmp_path):
+    from surftrack.synth.generate import generate_dataset
+
+    (tmp_path / "junk.ply").write_text("not a mesh\n")
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.jpg").write_bytes(b"not a jpeg")
+    for tissue, name in (({"source": "mesh", "mesh": str(tmp_path / "junk.ply")}, "junk.ply"),
+                         ({"source": "images", "images": str(tmp_path / "photos")}, "a.jpg")):
+        cfg = load_synth_config(overrides=_small(tissue))
+        with pytest.raises(ConfigError, match=rf"tissue: .*{name}"):
+            generate_dataset(tmp_path / "out", cfg, 2, seed=0, workers=1, progress=False)
+        assert not list((tmp_path / "out").rglob("*.png")) and not list((tmp_path / "out").rglob("*.jpg"))

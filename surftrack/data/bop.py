@@ -114,6 +114,8 @@ def load_models(models_dir: str | Path) -> dict[int, Part]:
             return load_bop_models(d)
         except FileNotFoundError as e:
             raise DatasetError(str(e)) from None
+        except ValueError as e:  # a truncated or empty mesh, a part it cannot describe
+            raise DatasetError(f"{d}: cannot load the models ({e})") from None
     files = sorted(p for p in d.iterdir() if _FLAT_RE.match(p.name))
     idx = [int(p.stem) for p in files]
     if idx != list(range(len(files))):
@@ -200,6 +202,9 @@ class BopDataset:
         present = {p.stem: p.suffix for p in rgb_dir.iterdir() if p.suffix.lower() in RGB_EXTS}
         exts: dict[int, str] = {}
         out: list[Instance] = []
+        bad = [key for key in gts if not str(key).isdigit()]
+        if bad:
+            raise DatasetError(f"{d / 'scene_gt.json'}: image keys must be image numbers, got {bad[:3]}")
         for key in sorted(gts, key=int):
             im = int(key)
             name = f"{im:06d}"
@@ -233,6 +238,8 @@ class BopDataset:
                         {a: b for a, b in gt.items() if a not in ("obj_id", "cam_R_m2c", "cam_t_m2c")})
                 except KeyError as e:
                     raise DatasetError(f"{d / 'scene_gt_info.json'}: image {im} entry {k}: missing key {e}") from None
+                except (TypeError, ValueError) as e:
+                    raise DatasetError(f"{d / 'scene_gt_info.json'}: image {im} entry {k}: bad value ({e})") from None
                 if self.models and obj_id not in self.models:
                     raise DatasetError(f"{d / 'scene_gt.json'}: image {im} entry {k}: obj_id {obj_id} has no model in "
                                        f"{self.models_dir} (models: {sorted(self.models)})")

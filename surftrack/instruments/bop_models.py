@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from surftrack.atomic import write_atomic
 from surftrack.instruments.library import Instrument
 from surftrack.instruments.part import Part
 
@@ -46,7 +47,7 @@ def export_bop_models(instruments: list[Instrument], out_dir: str | Path, first_
     for obj_id, (inst, pname) in assign_obj_ids(instruments, first_id).items():
         part = inst.parts[pname]
         ply = trimesh.exchange.ply.export_ply(part.mesh, encoding="binary", vertex_normal=True)
-        (out / f"obj_{obj_id:06d}.ply").write_bytes(ply)
+        write_atomic(out / f"obj_{obj_id:06d}.ply", ply)
         rec = model_info(part)
         rec.update({
             "instrument": inst.name, "part": pname,
@@ -56,14 +57,15 @@ def export_bop_models(instruments: list[Instrument], out_dir: str | Path, first_
         })
         info[str(obj_id)] = rec
         names[obj_id] = (inst.name, pname)
-    (out / "models_info.json").write_text(json.dumps(info, indent=2))
+    write_atomic(out / "models_info.json", json.dumps(info, indent=2))
     return names
 
 
 def load_bop_models(models_dir: str | Path) -> dict[int, Part]:
     """Parts of a BOP ``models/`` folder (ours or any BOP dataset's), keyed by obj id.
 
-    Part names come from our extra keys when present, else ``obj_XXXXXX``.
+    Part names come from our extra keys when present, else ``obj_XXXXXX``. A model file that cannot be
+    read raises ``ValueError`` naming it.
     """
     d = Path(models_dir)
     info_path = d / "models_info.json"
@@ -76,7 +78,10 @@ def load_bop_models(models_dir: str | Path) -> dict[int, Part]:
         ply = d / f"obj_{obj_id:06d}.ply"
         if not ply.is_file():
             raise FileNotFoundError(f"{ply}: model listed in models_info.json is missing")
-        mesh = trimesh.load(ply, force="mesh", process=False)
-        kps = {k: np.asarray(v) for k, v in rec.get("keypoints", {}).items()}
-        parts[obj_id] = Part(rec.get("part", f"obj_{obj_id:06d}"), mesh, keypoints=kps)
+        try:
+            mesh = trimesh.load(ply, force="mesh", process=False)
+            kps = {k: np.asarray(v) for k, v in rec.get("keypoints", {}).items()}
+            parts[obj_id] = Part(rec.get("part", f"obj_{obj_id:06d}"), mesh, keypoints=kps)
+        except Exception as e:  # noqa: BLE001 - a mesh reader's errors are many kinds; one line names the file
+            raise ValueError(f"{ply}: cannot read the model ({type(e).__name__}: {e})") from None
     return parts

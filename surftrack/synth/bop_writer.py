@@ -12,11 +12,12 @@ and every finalised scene is valid.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from surftrack.atomic import write_atomic
 
 
 def scene_dir(root: Path, split: str, scene_id: int) -> Path:
@@ -52,17 +53,11 @@ def decode_normals(enc: np.ndarray) -> np.ndarray:
     return np.where((enc.sum(-1, keepdims=True) > 0) & (norm > 0), n / np.maximum(norm, 1e-6), 0.0)
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def _imwrite(path: Path, img: np.ndarray, params: list[int] | None = None) -> None:
     ok, buf = cv2.imencode(path.suffix, img, params or [])
     if not ok:
         raise OSError(f"{path}: cannot encode image")
-    _write_atomic(path, buf.tobytes())
+    write_atomic(path, buf.tobytes())
 
 
 def write_image(root: Path, split: str, scene_id: int, im_id: int, rgb: np.ndarray, depth: np.ndarray,
@@ -81,7 +76,7 @@ def write_image(root: Path, split: str, scene_id: int, im_id: int, rgb: np.ndarr
     for k, (m, mv) in enumerate(zip(masks, masks_visib)):
         _imwrite(d / "mask" / f"{name}_{k:06d}.png", m.astype(np.uint8) * 255)
         _imwrite(d / "mask_visib" / f"{name}_{k:06d}.png", mv.astype(np.uint8) * 255)
-    _write_atomic(record_path(root, split, scene_id, im_id), json.dumps(record).encode())
+    write_atomic(record_path(root, split, scene_id, im_id), json.dumps(record).encode())
 
 
 def finished_images(root: Path, split: str, scene_id: int) -> set[int]:
@@ -107,5 +102,5 @@ def finalize_scene(root: Path, split: str, scene_id: int) -> int:
         cams[key], gts[key], infos[key] = rec["scene_camera"], rec["scene_gt"], rec["scene_gt_info"]
     order = sorted(cams, key=int)
     for name, store in (("scene_camera.json", cams), ("scene_gt.json", gts), ("scene_gt_info.json", infos)):
-        _write_atomic(d / name, json.dumps({k: store[k] for k in order}, indent=1).encode())
+        write_atomic(d / name, json.dumps({k: store[k] for k in order}, indent=1).encode())
     return len(order)

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +43,7 @@ from surftrack.geometry import PinholeCamera, box_from_bop, so3_exp, transform_p
 from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, JointState, assign_obj_ids, rcm_base_pose
 from surftrack.io.video import VideoWriter  # a leaf module: the one import of a later stage (see surftrack.io)
 from surftrack.render import Renderer, add_instrument
+from surftrack.atomic import write_atomic
 from surftrack.synth.bop_writer import bbox_xywh
 from surftrack.synth.checks import PartCollision, TissueCollision, in_view
 from surftrack.synth.config import LightingCfg, PoseCfg, TissueCfg
@@ -526,12 +526,6 @@ class _Planner:
 
 
 # ---------------------------------------------------------------------------------------------- output
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def _gt_text(doc: dict) -> str:
     """gt.json text: the header keys indented, then one frame per line."""
     head = [f"  {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items() if k != "frames"]
@@ -622,6 +616,9 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
         sec_ids = (np.array(sorted(set(handles[1].parts.values()) | {i for _, i in handles[1].attachments}))
                    if len(handles) == 2 else None)
         visible = {f"{k}:{inst.name}/{p}": 0 for k, inst in enumerate(tools) for p in inst.part_names}
+        # an earlier clip's truth must not sit beside this clip's video if this one stops part way
+        for old in ("camera.json", "gt.json", "det.json"):
+            (out / old).unlink(missing_ok=True)
         with VideoWriter(out / "video.mp4", fps, W, H, crf=cfg.crf) as writer:
             for i in tqdm(range(n), desc="clip", unit="frame", disable=not progress):
                 part_poses = [tr.poses(i) for tr in tracks]
@@ -665,7 +662,7 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
         renderer.release()
 
     camera_doc = {**camera.to_dict(), "dist": camera.dist.tolist()}
-    _write_atomic(out / "camera.json", json.dumps(camera_doc, indent=2) + "\n")
+    write_atomic(out / "camera.json", json.dumps(camera_doc, indent=2) + "\n")
     gt_doc = {
         "format": GT_FORMAT, "version": GT_VERSION, "fps": fps, "image_size": [W, H], "seed": int(seed),
         "config": cfg.to_dict(), "parts": parts_doc,
@@ -673,7 +670,7 @@ def make_clip(out_dir: str | Path, instrument: str = "lnd", cfg: ClipConfig = Cl
                    sorted(obj_ids.items(), key=lambda kv: kv[1])},
         "frames": frames_gt,
     }
-    _write_atomic(out / "gt.json", _gt_text(gt_doc))
+    write_atomic(out / "gt.json", _gt_text(gt_doc))
     meta = {"detector": "simulated", "generator": "surftrack.synth.clip", "seed": int(seed), "video": "video.mp4",
             "noise": dataclasses.asdict(noise)}
     write_detections(out / "det.json", detections_document((W, H), parts_doc, det_frames, meta))

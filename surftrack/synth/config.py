@@ -115,8 +115,24 @@ class SynthConfig:
 
     def validate(self) -> SynthConfig:
         """Check values that would otherwise fail late or silently; returns self."""
+        from surftrack.synth.effects import CameraEffects
+
+        w, h = self.image.width, self.image.height
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 and v % 2 == 0 for v in (w, h)):
+            raise ConfigError(f"image width and height must be even positive integers, got {w!r} x {h!r}")
+        for name in ("camera", "tissue", "pose", "lighting"):
+            for f in dataclasses.fields(getattr(self, name)):
+                v = getattr(getattr(self, name), f.name)
+                if f.type == "Range" and not (isinstance(v, (tuple, list)) and len(v) == 2 and all(
+                        isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+                    raise ConfigError(f"{name}.{f.name}: expected a [lo, hi] range of numbers, got {v!r}")
+        if not isinstance(self.effects, dict):
+            raise ConfigError(f"effects: expected a mapping of camera effects, got {self.effects!r}")
+        try:  # the workers build these: a bad value found there would stall a pool that restarts them
+            CameraEffects.from_dict(self.effects)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"effects: {e}") from None
         checks = [
-            (self.image.width % 2 == 0 and self.image.height % 2 == 0, "image width and height must be even"),
             (len(self.instruments) > 0, "instruments must list at least one instrument"),
             (0.0 <= self.two_instruments_prob <= 1.0, "two_instruments_prob must be in [0, 1]"),
             (0.0 < self.rejection.min_visib_fract <= 1.0, "rejection.min_visib_fract must be in (0, 1]"),
@@ -195,6 +211,6 @@ def load_synth_config(path: str | Path | None = None, overrides: dict[str, Any] 
         data.update(overrides or {})
     try:
         return build_dataclass(SynthConfig, data, str(p), ConfigError).validate()
-    except ConfigError as e:  # validate() messages do not name the file yet
-        msg = str(e)
+    except (ConfigError, TypeError, ValueError) as e:  # validate() messages do not name the file yet; a
+        msg = str(e)  # value of the wrong type (a string for a number) fails one of its comparisons
         raise ConfigError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None

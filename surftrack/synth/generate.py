@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from surftrack import __version__
+from surftrack.atomic import write_atomic
 from surftrack.configio import build_dataclass
 from surftrack.geometry import PinholeCamera
 from surftrack.instruments import BUILTIN, Instrument, InstrumentRegistry, assign_obj_ids, export_bop_models
@@ -223,8 +224,12 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRe
     card = out / "dataset_card.json"
     if not card.is_file():
         return
-    old = json.loads(card.read_text())
-    made = old.get("config")
+    try:
+        old = json.loads(card.read_text())
+        made = old.get("config")
+    except (ValueError, AttributeError):
+        raise ConfigError(f"{card}: not a dataset card (unreadable JSON); remove it to make the dataset "
+                          f"again, or write to a new folder") from None
     if isinstance(made, dict) and made:
         # Keys added to the config since the dataset was made take their defaults. Rule for new keys:
         # the default must reproduce the behaviour from before the key existed.
@@ -307,6 +312,10 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
     insts = load_instruments(cfg, instruments)
     _check_resume(out, cfg, seed, instruments)
     gl_context()  # fail here, with a clear error, rather than in workers that a pool would respawn forever
+    try:
+        TissueSource(cfg.tissue).check()
+    except ValueError as e:
+        raise ConfigError(f"tissue: {e}") from None
     export_bop_models(insts, out / "models")
     tasks = plan_tasks(cfg, out, n_images)
     todo = sum(len(ids) for _, ids in tasks)
@@ -399,4 +408,4 @@ def write_dataset_card(out: Path, cfg: SynthConfig, seed: int, instruments: list
     })
     a = card["acceptance"]
     a["acceptance_rate"] = round(a["accepted"] / a["attempts"], 4) if a["attempts"] else 0.0
-    card_path.write_text(json.dumps(card, indent=2))
+    write_atomic(card_path, json.dumps(card, indent=2))

@@ -115,7 +115,8 @@ def roll_reference(cfg: PoseCfg, shaft: np.ndarray) -> np.ndarray | None:
 def sample_joints(instrument: Instrument, cfg: PoseCfg, rng: np.random.Generator) -> JointState:
     """Joint values: with ``cfg.joint_source == 'limits'`` uniform over the instrument's whole reach
     (:meth:`~surftrack.instruments.Instrument.reach`); with ``'ranges'`` from the configured ranges (the
-    paper's), clipped to the limits."""
+    paper's), clipped to the limits. Either way a joint without a limit stays at 0 (a spatula has no
+    opening to record)."""
     if cfg.joint_source == "limits":
         return JointState(**{n: float(rng.uniform(lo, hi)) for n, (lo, hi) in instrument.reach().items()})
 
@@ -125,7 +126,8 @@ def sample_joints(instrument: Instrument, cfg: PoseCfg, rng: np.random.Generator
 
     q = JointState.from_degrees(roll=uniform(rng, cfg.roll_deg), pitch=wrist(cfg.pitch_deg),
                                 yaw=wrist(cfg.yaw_deg), opening=uniform(rng, cfg.opening_deg))
-    return instrument.limits.clip(q)
+    limited = instrument.limits.ranges
+    return JointState(**{n: v if n in limited else 0.0 for n, v in instrument.limits.clip(q).as_dict().items()})
 
 
 def sample_instrument(instrument: Instrument, cfg: PoseCfg, rng: np.random.Generator, camera: PinholeCamera,

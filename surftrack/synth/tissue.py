@@ -374,6 +374,14 @@ class TissueSource:
         self._mesh: Tissue | None = None
         self._images = image_files(cfg.images) if cfg.source == "images" else []
 
+    def check(self) -> None:
+        """Read now what the images will read (the mesh, every image), so that a bad file stops a run before
+        its first image rather than in a worker hours in: ``ValueError`` naming the file."""
+        if self.cfg.source == "mesh":
+            self(np.random.default_rng(0))
+        for f in self._images:
+            read_image(f)
+
     def __call__(self, rng: np.random.Generator) -> Tissue:
         t = self.cfg
         if t.source == "mesh":
