@@ -309,6 +309,20 @@ def test_resume_takes_an_alias_for_its_instrument(dataset):
         _check_resume(root, load_synth_config(overrides={**SMALL, "instruments": ["lnd", "cadiere_forceps"]}), 5)
 
 
+def test_resume_refuses_an_instrument_whose_geometry_changed(dataset, tmp_path):
+    from surftrack.synth.generate import _check_resume
+
+    root, cfg, _ = dataset
+    card = json.loads((root / "dataset_card.json").read_text())
+    assert all(len(o["mesh_sha256"]) == 64 for o in card["objects"].values())
+    _check_resume(root, cfg, 5)
+    first = sorted(card["objects"], key=int)[0]
+    card["objects"][first]["mesh_sha256"] = "0" * 64  # as if the part's mesh had been edited since
+    (tmp_path / "dataset_card.json").write_text(json.dumps(card))
+    with pytest.raises(ConfigError, match=f"geometry of {card['objects'][first]['instrument']}/"):
+        _check_resume(tmp_path, cfg, 5)
+
+
 def test_resume_refuses_a_damaged_card_in_one_line(tmp_path):
     from surftrack.synth.generate import _check_resume
 

@@ -16,6 +16,13 @@ from pathlib import Path
 from surftrack.data.bop import DatasetError
 
 
+def _object_names(card: dict) -> dict:
+    """obj id -> (instrument, part) of a dataset card: what joined sets must agree on (their models' bytes
+    are compared too; cards of different versions carry different extra fields)."""
+    return {k: (v.get("instrument"), v.get("part")) for k, v in (card.get("objects") or {}).items()
+            if isinstance(v, dict)}
+
+
 def _card(src: Path) -> dict:
     try:
         return json.loads((src / "dataset_card.json").read_text())
@@ -51,7 +58,7 @@ def join_datasets(out: str | Path, sources: Sequence[str | Path], split: str = "
     for src, card in zip(srcs[1:], cards[1:]):
         if (sorted(f.name for f in (src / "models").iterdir()) != names
                 or any((src / "models" / n).read_bytes() != (srcs[0] / "models" / n).read_bytes() for n in names)
-                or card.get("objects") != cards[0].get("objects")):
+                or _object_names(card) != _object_names(cards[0])):
             raise DatasetError(f"{src}: its models differ from those of {srcs[0]}")
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)

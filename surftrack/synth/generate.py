@@ -240,6 +240,15 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRe
     if old.get("seed") != seed or _comparable(made, registry) != _comparable(cfg.to_dict(), registry):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
+    # the config names an instrument by its file; an edited file (mesh, origins, units) makes other images
+    objects = old.get("objects") if isinstance(old.get("objects"), dict) else {}
+    now = {str(oid): inst.parts[p].mesh_hash for oid, (inst, p) in
+           assign_obj_ids(load_instruments(cfg, registry)).items()}
+    changed = sorted(f"{o.get('instrument')}/{o.get('part')}" for oid, o in objects.items()
+                     if isinstance(o, dict) and o.get("mesh_sha256") and now.get(oid) != o["mesh_sha256"])
+    if changed:
+        raise ConfigError(f"{out}: the geometry of {', '.join(changed)} changed since the dataset was made "
+                          f"(see {card}); resume with the instruments as they were, or write to a new folder")
 
 
 def _comparable(config, registry: InstrumentRegistry) -> object:
@@ -398,7 +407,7 @@ def write_dataset_card(out: Path, cfg: SynthConfig, seed: int, instruments: list
                   "normal/<im>.png = uint8 RGB (n + 1) / 2 * 255, camera frame",
         "generator": f"surftrack {__version__}", "seed": seed, "split": split, "config": cfg.to_dict(),
         "images": n_images,
-        "objects": {str(oid): {"instrument": inst.name, "part": p}
+        "objects": {str(oid): {"instrument": inst.name, "part": p, "mesh_sha256": inst.parts[p].mesh_hash}
                     for oid, (inst, p) in assign_obj_ids(instruments).items()},
         "acceptance": {
             "attempts": sum(r["attempts"] for r in all_runs),
