@@ -317,3 +317,17 @@ def test_a_restart_keeps_the_other_parts_updates_of_the_frame():
     R_j, t_j = views["jaw_left"].pose
     views["jaw_left"].restart(R_j @ so3_exp(np.radians([0.0, 20.0, 0.0])), t_j, MEAS, np.eye(6))
     assert np.linalg.norm(kf.part_pose(NAMES["shaft"])[1] - moved) < 0.5
+
+
+def test_a_joint_predicted_into_its_limit_stops_there():
+    """A rate carrying a joint past its limit is stopped at the limit in the prediction, so the state, its
+    views and its rates (the tool tip's velocity) agree."""
+    kf, _, _ = _run(_truth(4), np.random.default_rng(4), 0.5, 1.0)
+    j = kf.n - 1  # the opening
+    x = kf.kf.x.reshape(kf.dim).copy()
+    x[12 + j], x[12 + kf.n + j] = kf.hi[j] - 0.01, 2.0  # 2 rad/s towards the upper limit
+    kf.kf.x = x.reshape(-1, 1)
+    kf.predict(kf.time + 0.1)
+    x = kf.kf.x.reshape(kf.dim)
+    assert x[12 + j] == pytest.approx(kf.hi[j]) and x[12 + kf.n + j] == 0.0
+    assert kf.prior.x[12 + j] == pytest.approx(kf.hi[j])

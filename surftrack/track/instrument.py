@@ -210,6 +210,11 @@ class InstrumentKalman:
         self.kf.predict(F=F, Q=Q)
         xn = self.kf.x.reshape(self.dim).copy()
         xn[6:9] = 0.0
+        # a joint carried past its limit stops there: the views, the innovations and the rates (the tool
+        # tip's velocity) then agree on where it is
+        q, rate = xn[12:12 + self.n], xn[12 + self.n:]
+        rate[((q <= self.lo) & (rate < 0)) | ((q >= self.hi) & (rate > 0))] = 0.0
+        xn[12:12 + self.n] = np.clip(q, self.lo, self.hi)
         self.kf.x = xn.reshape(-1, 1)
         self.R_ref, self.time = R_next, float(time)
         self.prior = FilterPrior(F, R_next.copy(), xn.copy(), self.kf.P.copy())
