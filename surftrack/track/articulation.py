@@ -9,9 +9,10 @@ previous fit. The trocar (remote centre of motion) is estimated from the measure
 pose, not the fit's, which the trocar pulls) once enough of them (``trocar_after``) have been seen,
 re-estimated every ``trocar_every`` fits, and used as a constraint from then on; it stays unknown while
 the axes barely change direction (they then do not pin a point). The trocar is a point in camera
-coordinates, so it assumes the endoscope holds still: when ``trocar_patience`` fits in a row with a shaft are poor under it (residuals
-beyond the ``FitConfig`` thresholds: the camera moved, or the first estimate was wrong), it is forgotten
-with the axes seen so far and estimated again from the axes that follow.
+coordinates, so it assumes the endoscope holds still: when ``trocar_patience`` fits in a row with a
+shaft are poor under it (residuals beyond the ``FitConfig`` thresholds: the camera moved, or the first
+estimate was wrong), it is forgotten with the axes seen so far and estimated again from the axes that
+follow.
 """
 
 from __future__ import annotations
