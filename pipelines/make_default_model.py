@@ -1,7 +1,7 @@
 """The recipe of the bundled default model (`models/default.pt`): Large Needle Driver, lite config, CPU.
 
     python pipelines/make_default_model.py --work runs/default [--device cpu|cuda] [--skip-eval]
-                                           [--stage7-init CHECKPOINT] [--workers N]
+                                           [--from-stage K --init CHECKPOINT] [--workers N]
 
 Steps (each resumable: an existing output is reused):
 
@@ -10,7 +10,7 @@ Steps (each resumable: an existing output is reused):
    2,000 with ``roll_zero: across`` (seed 16), 2,000 with the roll anywhere in +-180 deg (seed 18) and
    2,000 more of those (seed 20); for stage 7, 3 x 2,000 over the instrument's whole reach (the synthesis
    default, ``configs/synth/default.yaml``: every joint within its limits; seeds 31, 32, 33) and 2,000
-   more with the paper's config (seed 34).
+   more with the paper's config (seed 34); for stage 8 the same again with seeds 41, 42, 43 and 44.
 2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
    2,000 steps on the 400 images with a constant learning rate (``schedule: constant``); 3,500 steps on
    the first 2,000 images with the lite config's cosine decay; 3,000 more on them at half the learning
@@ -19,10 +19,12 @@ Steps (each resumable: an existing output is reused):
    2,000-image sets (8,000 images) at the same rates; 10,000 steps on all five (10,000 images) at the same
    rates; stage 7: 12,000 steps on the 8,000 stage-7 images at a quarter of the lite rates (7.5e-5 /
    7.5e-6) after a 500-step warm-up, cosine, the LND labelled as one of its roll twins
-   (``data.canonical_twin``; stages 1-6 without). Each stage holds out its own validation images from its
+   (``data.canonical_twin``; stages 1-6 without); stage 8: 8,000 steps on the 8,000 stage-8 images, the
+   same rates and warm-up. Each stage holds out its own validation images from its
    data, so most of the later stages' were training images of earlier ones: their validation curves
-   flatter; the held-out evaluation below is independent of all stages. ``--stage7-init`` runs stage 7
-   alone, from another checkpoint (the int8 export of stage 6 when its fp32 weights are gone).
+   flatter; the held-out evaluation below is independent of all stages. ``--from-stage K --init CKPT`` runs
+   stages K onwards alone, stage K from another checkpoint (the bundled model's stage 7 started from the
+   int8 export of stage 6, its stage 8 from that of stage 7, when the fp32 weights were gone).
 3. Export with int8 U-Net weights (SIREN fields fp16) to ``models/default.pt`` and the training curves to
    ``models/default.curves.png``.
 4. ``surftrack eval --suite`` (the fixed held-out suite of ``configs/eval/suite.yaml``, its image sets and
@@ -31,7 +33,8 @@ Steps (each resumable: an existing output is reused):
    ``models/default.eval.suite.md`` and, by hand, into ``models/MODEL_CARD.md``.
 
 On the 2-core CPU machine of the model card stages 1-6 took about 9 hours (synthesis ~30 min, training
-~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training.
+~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training, stage 8 about 40 min of synthesis
+and 1.5-2 h of training.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+STAGES = 8  # training stages of the recipe
 
 
 def _synth(out: Path, images: int, seed: int, config: str = "paper", workers: int = 2, **pose) -> None:
@@ -61,12 +65,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default="runs/default", help="working folder (datasets, full checkpoints)")
     ap.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     ap.add_argument("--skip-eval", action="store_true")
-    ap.add_argument("--stage7-init", help="start stage 7 from this checkpoint instead of stage 6 (the bundled "
-                    "model's stage 7 started from the int8 export of stage 6, whose fp32 weights were not kept)")
+    ap.add_argument("--from-stage", type=int, help="run this stage and the later ones alone, the first of them "
+                    "from --init (the bundled model's stages 7 and 8 started from the previous stage's int8 "
+                    "export, whose fp32 weights were not kept)")
+    ap.add_argument("--init", help="the checkpoint --from-stage starts from")
     ap.add_argument("--workers", type=int, help="synthesis processes and training-loader workers, about one per "
                     "core on a GPU machine (default: 2 for synthesis, the lite config's loader setting, 0, "
                     "for training: the 2-core machine the recipe was made on)")
     args = ap.parse_args(argv)
+    if (args.from_stage is None) != (args.init is None):
+        ap.error("--from-stage and --init go together")
+    if args.from_stage is not None and not 2 <= args.from_stage <= STAGES:
+        ap.error(f"--from-stage must be 2-{STAGES}, got {args.from_stage}")
+    if args.init is not None and not Path(args.init).is_file():
+        ap.error(f"--init {args.init}: no such file")
     if args.workers is not None and args.workers < 1:
         ap.error(f"--workers must be 1 or more, got {args.workers}")
     synth_workers = args.workers or 2
@@ -78,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model.train import train
 
     # stages 1-6 as the bundled model was trained, before data.canonical_twin existed (labels as drawn);
-    # stage 7, over the instrument's whole reach, labels the LND as one of its roll twins: both twins are
+    # stages 7 and 8, over the instrument's whole reach, label the LND as one of its roll twins: both twins are
     # drawn alike there and give the same image (docs/results/2026-12-05-roll-twin.md)
     lite = load_train_config("lite").replace(data={"canonical_twin": False})
     half = lite.replace(optim={"lr_net": 1.5e-4, "lr_field": 1.5e-5})
@@ -89,8 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     # (config, data, steps): stage 1 from scratch, each later one from the previous stage's weights
     stages = [(lite.replace(optim={"schedule": "constant"}), "lnd400", 2000), (lite, "lnd2k", 3500),
               (half, "lnd2k", 3000), (half, "lnd4k", 7500), (half, "lnd8k_mix", 10000), (half, "lnd10k_mix", 10000),
-              (quarter, "lnd8k_reach", 12000)]
-    if not args.stage7_init:
+              (quarter, "lnd8k_reach", 12000), (quarter, "lnd8k_reach_b", 8000)]
+    assert len(stages) == STAGES
+    first = args.from_stage or 1
+    if first <= 6:
         for name, n, seed in (("lnd400", 400, 11), ("lnd2k", 2000, 12), ("lnd2k_b", 2000, 15)):
             _synth(work / name, n, seed, workers=synth_workers)
         _synth(work / "lnd_across2k", 2000, 16, workers=synth_workers, roll_zero="across")
@@ -101,17 +115,23 @@ def main(argv: list[str] | None = None) -> int:
         join_datasets(work / "lnd8k_mix", view + across + roll)
         join_datasets(work / "lnd10k_mix", view + across + roll + [work / "lnd_fullroll2k_b"])
     # stage 7: the instrument's whole reach (the synthesis default), a quarter paper-range images kept in
-    for name, seed, config in (("lnd_reach2k_a", 31, "default"), ("lnd_reach2k_b", 32, "default"),
-                               ("lnd_reach2k_c", 33, "default"), ("lnd2k_c", 34, "paper")):
-        _synth(work / name, 2000, seed, config, workers=synth_workers)
-    join_datasets(work / "lnd8k_reach", [work / f"lnd_reach2k_{k}" for k in "abc"] + [work / "lnd2k_c"])
+    # (stage 8 the same on new images)
+    reach_sets = {7: ("lnd8k_reach", "abc", "lnd2k_c", (31, 32, 33, 34)),
+                  8: ("lnd8k_reach_b", "def", "lnd2k_d", (41, 42, 43, 44))}
+    for k, (joined, letters, paper_set, seeds) in reach_sets.items():
+        if k < first:
+            continue
+        names = [f"lnd_reach2k_{c}" for c in letters] + [paper_set]
+        for name, seed in zip(names, seeds):
+            _synth(work / name, 2000, seed, "paper" if name == paper_set else "default", workers=synth_workers)
+        join_datasets(work / joined, [work / n for n in names])
 
     prev = None
     for k, (stage_cfg, data, steps) in enumerate(stages, start=1):
-        if args.stage7_init and k < 7:
+        if k < first:
             continue
-        if args.stage7_init and k == 7:
-            prev = Path(args.stage7_init)
+        if k == args.from_stage:
+            prev = Path(args.init)
         stage = work / f"stage{k}.pt"
         if args.workers is not None:  # the loader's workers change the speed, not the batches
             stage_cfg = stage_cfg.replace(run={"workers": args.workers})
