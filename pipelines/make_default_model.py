@@ -10,7 +10,9 @@ Steps (each resumable: an existing output is reused):
    2,000 with ``roll_zero: across`` (seed 16), 2,000 with the roll anywhere in +-180 deg (seed 18) and
    2,000 more of those (seed 20); for stage 7, 3 x 2,000 over the instrument's whole reach (the synthesis
    default, ``configs/synth/default.yaml``: every joint within its limits; seeds 31, 32, 33) and 2,000
-   more with the paper's config (seed 34); for stage 8 the same again with seeds 41, 42, 43 and 44.
+   more with the paper's config (seed 34); for stage 8 the same again with seeds 41, 42, 43 and 44, and
+   1,000 far (seed 45) and 1,000 near (seed 46) tools: the held-out suite's ``far`` and ``near`` settings
+   (``configs/eval/suite.yaml``) with seeds of their own.
 2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
    2,000 steps on the 400 images with a constant learning rate (``schedule: constant``); 3,500 steps on
    the first 2,000 images with the lite config's cosine decay; 3,000 more on them at half the learning
@@ -19,7 +21,7 @@ Steps (each resumable: an existing output is reused):
    2,000-image sets (8,000 images) at the same rates; 10,000 steps on all five (10,000 images) at the same
    rates; stage 7: 12,000 steps on the 8,000 stage-7 images at a quarter of the lite rates (7.5e-5 /
    7.5e-6) after a 500-step warm-up, cosine, the LND labelled as one of its roll twins
-   (``data.canonical_twin``; stages 1-6 without); stage 8: 8,000 steps on the 8,000 stage-8 images, the
+   (``data.canonical_twin``; stages 1-6 without); stage 8: 8,000 steps on the 10,000 stage-8 images, the
    same rates and warm-up. Each stage holds out its own validation images from its
    data, so most of the later stages' were training images of earlier ones: their validation curves
    flatter; the held-out evaluation below is independent of all stages. ``--from-stage K --init CKPT`` runs
@@ -34,7 +36,7 @@ Steps (each resumable: an existing output is reused):
 
 On the 2-core CPU machine of the model card stages 1-6 took about 9 hours (synthesis ~30 min, training
 ~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training, stage 8 about 40 min of synthesis
-and 1.5-2 h of training.
+and 1.5 h of training.
 """
 
 from __future__ import annotations
@@ -88,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model import load_checkpoint, load_train_config, save_checkpoint
     from surftrack.data.join import join_datasets
     from surftrack.model.train import train
+    from surftrack.pose.suite import load_suite, set_config
+    from surftrack.synth.generate import generate_dataset
 
     # stages 1-6 as the bundled model was trained, before data.canonical_twin existed (labels as drawn);
     # stages 7 and 8, over the instrument's whole reach, label the LND as one of its roll twins: both twins are
@@ -101,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     # (config, data, steps): stage 1 from scratch, each later one from the previous stage's weights
     stages = [(lite.replace(optim={"schedule": "constant"}), "lnd400", 2000), (lite, "lnd2k", 3500),
               (half, "lnd2k", 3000), (half, "lnd4k", 7500), (half, "lnd8k_mix", 10000), (half, "lnd10k_mix", 10000),
-              (quarter, "lnd8k_reach", 12000), (quarter, "lnd8k_reach_b", 8000)]
+              (quarter, "lnd8k_reach", 12000), (quarter, "lnd10k_reach_b", 8000)]
     assert len(stages) == STAGES
     first = args.from_stage or 1
     if first <= 6:
@@ -116,14 +120,23 @@ def main(argv: list[str] | None = None) -> int:
         join_datasets(work / "lnd10k_mix", view + across + roll + [work / "lnd_fullroll2k_b"])
     # stage 7: the instrument's whole reach (the synthesis default), a quarter paper-range images kept in
     # (stage 8 the same on new images)
+    # (stage 8 the same on new images, with far and near tools: a stage without them lost those,
+    # docs/results/2026-12-06-stage8.md)
     reach_sets = {7: ("lnd8k_reach", "abc", "lnd2k_c", (31, 32, 33, 34)),
-                  8: ("lnd8k_reach_b", "def", "lnd2k_d", (41, 42, 43, 44))}
+                  8: ("lnd10k_reach_b", "def", "lnd2k_d", (41, 42, 43, 44))}
+    suite = {s.name: s for s in load_suite()}
     for k, (joined, letters, paper_set, seeds) in reach_sets.items():
         if k < first:
             continue
         names = [f"lnd_reach2k_{c}" for c in letters] + [paper_set]
         for name, seed in zip(names, seeds):
             _synth(work / name, 2000, seed, "paper" if name == paper_set else "default", workers=synth_workers)
+        if k == 8:
+            for name, seed in (("far", 45), ("near", 46)):
+                s = dataclasses.replace(suite[name], seed=seed, images=1000)
+                generate_dataset(work / f"lnd_{name}1k", set_config(s), s.images, seed=s.seed,
+                                 workers=synth_workers, progress=True)
+                names.append(f"lnd_{name}1k")
         join_datasets(work / joined, [work / n for n in names])
 
     prev = None
