@@ -219,8 +219,10 @@ def load_instruments(cfg: SynthConfig, registry: InstrumentRegistry = BUILTIN) -
     return insts
 
 
-def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRegistry = BUILTIN) -> None:
-    """Refuse to add images made with another seed or configuration to an existing dataset."""
+def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRegistry = BUILTIN,
+                  instruments: list[Instrument] | None = None) -> None:
+    """Refuse to add images made with another seed or configuration, or other instrument geometry, to an
+    existing dataset. ``instruments``: ``cfg``'s, when the caller has loaded them already."""
     card = out / "dataset_card.json"
     if not card.is_file():
         return
@@ -243,7 +245,7 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRe
     # the config names an instrument by its file; an edited file (mesh, origins, units) makes other images
     objects = old.get("objects") if isinstance(old.get("objects"), dict) else {}
     now = {str(oid): inst.parts[p].mesh_hash for oid, (inst, p) in
-           assign_obj_ids(load_instruments(cfg, registry)).items()}
+           assign_obj_ids(instruments or load_instruments(cfg, registry)).items()}
     changed = sorted(f"{o.get('instrument')}/{o.get('part')}" for oid, o in objects.items()
                      if isinstance(o, dict) and o.get("mesh_sha256") and now.get(oid) != o["mesh_sha256"])
     if changed:
@@ -319,7 +321,7 @@ def generate_dataset(out_dir: str | Path, cfg: SynthConfig, n_images: int, seed:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     insts = load_instruments(cfg, instruments)
-    _check_resume(out, cfg, seed, instruments)
+    _check_resume(out, cfg, seed, instruments, insts)
     gl_context()  # fail here, with a clear error, rather than in workers that a pool would respawn forever
     try:
         TissueSource(cfg.tissue).check()
