@@ -1,5 +1,5 @@
-"""Files replaced whole: written beside their place and renamed over it, so that a reader, a crash or a
-killed run never leaves half a file (a resumed run then parses what is there).
+"""Files replaced whole: written beside their place and renamed over it, so that a reader never sees, and
+a crash or a killed run never leaves, half a file (a resumed run then parses what is there).
 
 Used by any stage that writes a file others read back (BOP datasets, clips, instrument models); it
 imports nothing from surftrack.
@@ -8,16 +8,21 @@ imports nothing from surftrack.
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 
 def write_atomic(path: str | Path, data: bytes | str) -> None:
-    """Write ``data`` (bytes, or text as UTF-8) to ``path`` through ``<path>.tmp`` and one rename."""
+    """Write ``data`` (bytes, or text as UTF-8) to ``path``: into a temporary file of its own beside it
+    (two writers of one path never share one), then renamed over ``path``. Not synced to disk: a killed
+    run leaves whole files; a power cut may not (a synthesis resume then writes what it finds missing)."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
-        tmp.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+        os.chmod(tmp, 0o644)  # mkstemp makes the file private; these are ordinary data files
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        Path(tmp).unlink(missing_ok=True)
         raise

@@ -430,7 +430,6 @@ sets:
 @pytest.mark.parametrize("text, problem", [
     ("images: many\nsets: {a: {seed: 1}}\n", "'images' must be a positive integer"),
     ("sets: {a: [1, 2]}\n", "set 'a' must be a mapping"),
-    ("sets: [a, b]\n", "a suite needs 'sets'"),
     ("sets: {a: {seed: 1, overrides: x}}\n", "'overrides' must be a mapping"),
     ("sets: {a: {seed: 1}}\nclips: {c: 5}\n", "clip 'c' must be a mapping"),
 ])

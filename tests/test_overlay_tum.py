@@ -327,6 +327,9 @@ def test_tum_writer_removes_an_earlier_runs_files_only(tmp_path):
         w.add("wrist", 0.0, np.eye(3), [1.0, 2.0, 3.0])
     mine = tmp_path / "notes.tum"
     mine.write_text("# my own trajectory\n0.0 0 0 0 0 0 0 1\n")
+    with TumWriter(tmp_path):  # a run that fails before its first pose leaves the earlier tracks
+        pass
+    assert (tmp_path / "wrist.tum").exists()
     with TumWriter(tmp_path) as w:  # a second run that never poses the wrist
         w.add("shaft", 0.0, np.eye(3), [4.0, 5.0, 6.0])
     assert not (tmp_path / "wrist.tum").exists()

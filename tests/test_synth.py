@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -317,8 +318,14 @@ def test_resume_refuses_an_instrument_whose_geometry_changed(dataset, tmp_path):
     assert all(len(o["mesh_sha256"]) == 64 for o in card["objects"].values())
     _check_resume(root, cfg, 5)
     first = sorted(card["objects"], key=int)[0]
-    card["objects"][first]["mesh_sha256"] = "0" * 64  # as if the part's mesh had been edited since
+    card["objects"][first]["mesh_sha256"] = "0" * 64  # the recorded hash differs from today's ...
     (tmp_path / "dataset_card.json").write_text(json.dumps(card))
+    shutil.copytree(root / "models", tmp_path / "models")
+    _check_resume(tmp_path, cfg, 5)  # ... but the dataset's model is today's mesh: a hash that moved alone
+    ply = tmp_path / "models" / f"obj_{int(first):06d}.ply"
+    mesh = trimesh.load(ply, force="mesh", process=False)
+    mesh.apply_scale(1.05)  # the part's mesh edited since the images were made
+    mesh.export(ply)
     with pytest.raises(ConfigError, match=f"geometry of {card['objects'][first]['instrument']}/"):
         _check_resume(tmp_path, cfg, 5)
 

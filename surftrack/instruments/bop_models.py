@@ -80,8 +80,11 @@ def load_bop_models(models_dir: str | Path) -> dict[int, Part]:
             raise FileNotFoundError(f"{ply}: model listed in models_info.json is missing")
         try:
             mesh = trimesh.load(ply, force="mesh", process=False)
-            kps = {k: np.asarray(v) for k, v in rec.get("keypoints", {}).items()}
-            parts[obj_id] = Part(rec.get("part", f"obj_{obj_id:06d}"), mesh, keypoints=kps)
         except Exception as e:  # noqa: BLE001 - a mesh reader's errors are many kinds; one line names the file
             raise ValueError(f"{ply}: cannot read the model ({type(e).__name__}: {e})") from None
+        kps = {k: np.asarray(v) for k, v in rec.get("keypoints", {}).items()}
+        try:
+            parts[obj_id] = Part(rec.get("part", f"obj_{obj_id:06d}"), mesh, keypoints=kps)
+        except ValueError as e:  # an empty or degenerate mesh (a file cut off mid-write)
+            raise ValueError(f"{ply}: cannot read the model ({e})") from None
     return parts

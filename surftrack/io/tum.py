@@ -59,7 +59,8 @@ def _tum_line(time_s: float, R, t_mm) -> str:
 class TumWriter:
     """Writes one TUM trajectory file per part into ``directory`` (created if missing).
 
-    TUM files an earlier TumWriter left in ``directory`` are removed (others are left alone).
+    When it closes having written tracks, TUM files an earlier TumWriter left in ``directory`` for other
+    parts are removed (other files are left alone).
     :meth:`add` appends a pose; a part's file is created (replacing an older one) at its first pose, and
     every line is flushed at once, so a crash loses nothing already added. Two part names that give the
     same file name (see :func:`tum_filename`) raise ``ValueError``. Use as a context manager, or call
@@ -73,15 +74,6 @@ class TumWriter:
         except OSError as e:
             raise OSError(e.errno, f"cannot create the TUM output directory {str(self.directory)!r}: "
                                    f"{e.strerror}") from e
-        # an earlier run's file of a part this run never poses must not pass for this run's
-        for old in self.directory.glob("*.tum"):
-            try:
-                with open(old, encoding="utf-8") as f:
-                    ours = f.readline().startswith(_HEADER.split("{", 1)[0])
-                if ours:
-                    old.unlink()
-            except (OSError, UnicodeDecodeError):
-                pass  # not a file of ours, or not ours to remove
         self._files: dict[str, TextIO] = {}
         self._paths: dict[str, Path] = {}
         self._part_of_file: dict[str, str] = {}
@@ -130,6 +122,21 @@ class TumWriter:
         self._closed = True
         for f in self._files.values():
             f.close()
+        if self._paths:  # a run that wrote tracks: an earlier run's file of a part it never posed must not
+            self._remove_stale()  # pass for this run's (a run that wrote nothing leaves the folder as it was)
+
+    def _remove_stale(self) -> None:
+        ours = set(self._paths.values())
+        for old in self.directory.glob("*.tum"):
+            if old in ours:
+                continue
+            try:
+                with open(old, encoding="utf-8") as f:
+                    written_here = f.readline().startswith(_HEADER.split("{", 1)[0])
+            except (OSError, UnicodeDecodeError):
+                continue  # unreadable: not a TumWriter's file
+            if written_here:
+                old.unlink(missing_ok=True)
 
     def __enter__(self) -> TumWriter:
         return self

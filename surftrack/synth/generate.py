@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from surftrack import __version__
 from surftrack.atomic import write_atomic
@@ -242,12 +243,26 @@ def _check_resume(out: Path, cfg: SynthConfig, seed: int, registry: InstrumentRe
     if old.get("seed") != seed or _comparable(made, registry) != _comparable(cfg.to_dict(), registry):
         raise ConfigError(f"{out}: the dataset was made with another seed or configuration "
                           f"(see {card}); resume with the same ones, or write to a new folder")
-    # the config names an instrument by its file; an edited file (mesh, origins, units) makes other images
+    # the config names an instrument by its file; an edited mesh (or its units) makes other images. The
+    # hash is exact, so a part whose hash moved is compared, within tolerance, with the dataset's own model
+    # file. Cards from before the hash skip the check (the card written at the end then gets today's).
     objects = old.get("objects") if isinstance(old.get("objects"), dict) else {}
-    now = {str(oid): inst.parts[p].mesh_hash for oid, (inst, p) in
+    now = {str(oid): inst.parts[p] for oid, (inst, p) in
            assign_obj_ids(instruments or load_instruments(cfg, registry)).items()}
+
+    def moved(oid: str, rec: dict) -> bool:
+        part = now.get(oid)
+        if part is None or part.mesh_hash == rec["mesh_sha256"]:
+            return part is None
+        ply = out / "models" / f"obj_{int(oid):06d}.ply"
+        try:
+            mesh = trimesh.load(ply, force="mesh", process=False)
+        except Exception:  # noqa: BLE001 - no readable model to compare with: the hash decides
+            return True
+        return not part.same_geometry(mesh.vertices, mesh.faces)
+
     changed = sorted(f"{o.get('instrument')}/{o.get('part')}" for oid, o in objects.items()
-                     if isinstance(o, dict) and o.get("mesh_sha256") and now.get(oid) != o["mesh_sha256"])
+                     if isinstance(o, dict) and o.get("mesh_sha256") and moved(oid, o))
     if changed:
         raise ConfigError(f"{out}: the geometry of {', '.join(changed)} changed since the dataset was made "
                           f"(see {card}); resume with the instruments as they were, or write to a new folder")
