@@ -11,8 +11,9 @@ Steps (each resumable: an existing output is reused):
    2,000 more of those (seed 20); for stage 7, 3 x 2,000 over the instrument's whole reach (the synthesis
    default, ``configs/synth/default.yaml``: every joint within its limits; seeds 31, 32, 33) and 2,000
    more with the paper's config (seed 34); for stage 8 the same again with seeds 41, 42, 43 and 44, and
-   1,000 far (seed 45) and 1,000 near (seed 46) tools: the held-out suite's ``far`` and ``near`` settings
-   (``configs/eval/suite.yaml``) with seeds of their own.
+   1,000 far (seed 45; 928 made, the others' placements fail at that distance) and 1,000 near (seed 46)
+   tools: the held-out suite's ``far`` and ``near`` settings (``configs/eval/suite.yaml``) with seeds of
+   their own.
 2. ``surftrack train --config lite``, each stage started from the previous one's weights (``--init``):
    2,000 steps on the 400 images with a constant learning rate (``schedule: constant``); 3,500 steps on
    the first 2,000 images with the lite config's cosine decay; 3,000 more on them at half the learning
@@ -21,7 +22,7 @@ Steps (each resumable: an existing output is reused):
    2,000-image sets (8,000 images) at the same rates; 10,000 steps on all five (10,000 images) at the same
    rates; stage 7: 12,000 steps on the 8,000 stage-7 images at a quarter of the lite rates (7.5e-5 /
    7.5e-6) after a 500-step warm-up, cosine, the LND labelled as one of its roll twins
-   (``data.canonical_twin``; stages 1-6 without); stage 8: 8,000 steps on the 10,000 stage-8 images, the
+   (``data.canonical_twin``; stages 1-6 without); stage 8: 8,000 steps on the 9,928 stage-8 images, the
    same rates and warm-up. Each stage holds out its own validation images from its
    data, so most of the later stages' were training images of earlier ones: their validation curves
    flatter; the held-out evaluation below is independent of all stages. ``--from-stage K --init CKPT`` runs
@@ -35,7 +36,7 @@ Steps (each resumable: an existing output is reused):
    ``models/default.eval.suite.md`` and, by hand, into ``models/MODEL_CARD.md``.
 
 On the 2-core CPU machine of the model card stages 1-6 took about 9 hours (synthesis ~30 min, training
-~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training, stage 8 about 40 min of synthesis
+~8 h 10 min); stage 7 adds about 40 min of synthesis and 2.5-3 h of training, stage 8 about 50 min of synthesis
 and 1.5 h of training.
 """
 
@@ -90,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     from surftrack.model import load_checkpoint, load_train_config, save_checkpoint
     from surftrack.data.join import join_datasets
     from surftrack.model.train import train
-    from surftrack.pose.suite import load_suite, set_config
+    from surftrack.pose.suite import SuiteSet, set_config
     from surftrack.synth.generate import generate_dataset
 
     # stages 1-6 as the bundled model was trained, before data.canonical_twin existed (labels as drawn);
@@ -118,13 +119,17 @@ def main(argv: list[str] | None = None) -> int:
         join_datasets(work / "lnd4k", view)
         join_datasets(work / "lnd8k_mix", view + across + roll)
         join_datasets(work / "lnd10k_mix", view + across + roll + [work / "lnd_fullroll2k_b"])
-    # stage 7: the instrument's whole reach (the synthesis default), a quarter paper-range images kept in
-    # (stage 8 the same on new images)
-    # (stage 8 the same on new images, with far and near tools: a stage without them lost those,
-    # docs/results/2026-12-06-stage8.md)
+    # stage 7: the instrument's whole reach (the synthesis default), a quarter paper-range images kept in;
+    # stage 8 the same on new images, with far and near tools (a stage without them lost those,
+    # docs/results/2026-12-06-stage8.md): the held-out suite's far and near settings when it was trained,
+    # written out here so that the recipe does not move with the suite's file
     reach_sets = {7: ("lnd8k_reach", "abc", "lnd2k_c", (31, 32, 33, 34)),
                   8: ("lnd10k_reach_b", "def", "lnd2k_d", (41, 42, 43, 44))}
-    suite = {s.name: s for s in load_suite()}
+    lnd = ["large_needle_driver"]
+    depth_sets = {"far": (45, {"instruments": lnd, "tissue": {"distance_mm": [170, 220]},
+                               "pose": {"tip_to_tissue_mm": [40, 90]}}),
+                  "near": (46, {"instruments": lnd, "tissue": {"distance_mm": [80, 110]},
+                                "pose": {"tip_to_tissue_mm": [40, 80], "min_depth_mm": 15}})}
     for k, (joined, letters, paper_set, seeds) in reach_sets.items():
         if k < first:
             continue
@@ -132,8 +137,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, seed in zip(names, seeds):
             _synth(work / name, 2000, seed, "paper" if name == paper_set else "default", workers=synth_workers)
         if k == 8:
-            for name, seed in (("far", 45), ("near", 46)):
-                s = dataclasses.replace(suite[name], seed=seed, images=1000)
+            for name, (seed, overrides) in depth_sets.items():
+                s = SuiteSet(name, "default", seed, 1000, overrides)
                 generate_dataset(work / f"lnd_{name}1k", set_config(s), s.images, seed=s.seed,
                                  workers=synth_workers, progress=True)
                 names.append(f"lnd_{name}1k")
