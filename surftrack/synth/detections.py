@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
-import tempfile
 from dataclasses import dataclass, fields
 from functools import lru_cache
 from pathlib import Path
@@ -34,6 +32,7 @@ import numpy as np
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import best_match
 
+from surftrack.atomic import write_atomic
 from surftrack.geometry.boxes import Box
 from surftrack.paths import configs_dir
 
@@ -162,15 +161,7 @@ def write_detections(path: str | Path, doc: dict) -> None:
     body = ",\n".join("    " + f for f in frames)
     text = "\n".join(lines[:-1]) + ",\n" + ('  "frames": [\n' + body + "\n  ]\n}\n" if frames else '  "frames": []\n}\n')
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes the file private; a detection file is ordinary data
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text)
 
 
 def clip_box(bbox: Box, image_size: tuple[int, int]) -> Box | None:
