@@ -501,6 +501,20 @@ def test_join_links_the_scenes_of_several_datasets(root, tmp_path):
     assert main(["join", "--out", str(tmp_path / "both"), str(root), str(other)]) == 0  # the same join again
     with pytest.raises(DatasetError, match="does not join exactly these"):
         join_datasets(tmp_path / "both", [root])
+    # a card of an earlier version (no mesh hashes, other extra fields) joins; one naming other parts does not
+    card_path = other / "dataset_card.json"
+    old_card = json.loads(card_path.read_text())
+    for rec in old_card["objects"].values():
+        del rec["mesh_sha256"]
+        rec["extra"] = 1
+    card_path.write_text(json.dumps(old_card))
+    assert join_datasets(tmp_path / "older", [root, other]) == 2 * len(list((root / "train").iterdir()))
+    renamed = json.loads(card_path.read_text())
+    next(iter(renamed["objects"].values()))["part"] = "elsewhere"
+    card_path.write_text(json.dumps(renamed))
+    with pytest.raises(DatasetError, match="other: its models differ"):
+        join_datasets(tmp_path / "renamed", [root, other])
+    card_path.write_text(json.dumps(old_card))
     ply = next((other / "models").glob("*.ply"))
     ply.write_bytes(ply.read_bytes() + b"\n")
     with pytest.raises(DatasetError, match="other: its models differ"):

@@ -524,7 +524,7 @@ def test_the_silhouettes_colours_are_learnt_from_the_networks_masks(clip, lnd_pa
             if colors == "track":
                 assert not rt.colors[group].ready
                 continue
-            assert rt.colors[group].ready
+            assert rt.colors[group].ready and group in tracker._mask_colors
             mask = rt.contours(truth)[1][group].astype(np.uint8)
             inner = cv2.erode(mask, np.ones((3, 3), np.uint8)) > 0
             ring = (cv2.dilate(mask, np.ones((13, 13), np.uint8)) > 0) & ~(cv2.dilate(mask, np.ones((5, 5), np.uint8)) > 0)
@@ -532,6 +532,19 @@ def test_the_silhouettes_colours_are_learnt_from_the_networks_masks(clip, lnd_pa
             assert p[inner].mean() > 0.6 and p[ring].mean() < 0.4, (p[inner].mean(), p[ring].mean())
         finally:
             tracker.close()
+    # A keyframe whose masks leave too few pixels teaches nothing, and the instrument's colours do not
+    # count as learnt from masks (the next masks replace the predicted silhouette's colours at rate 1).
+    tracker = Tracker(PoseEstimator(model, "fast", device="cpu"), K, (320, 256), specs, TrackConfig())
+    try:
+        res = tracker.estimator.estimate(frames[i], [(specs[0].obj_id, boxes[specs[0].track_id][0][0])], K,
+                                         masks=True)[0]
+        res.mask = np.zeros_like(res.mask)
+        res.mask[:2, :2] = 1.0
+        tracker._learn_colors(frames[i], [(tracker.tracks[0], res)])
+        group = tracker._region_tracker().groups[specs[0].name]
+        assert group not in tracker._mask_colors and not tracker._region_tracker().colors[group].ready
+    finally:
+        tracker.close()
     assert load_track_config().region_colors == "network"
     with pytest.raises(ValueError, match="region_colors must be one of network, track"):
         TrackConfig(region_colors="image")
