@@ -969,6 +969,41 @@ def test_an_ended_track_s_revision_carries_the_move_and_survives_a_failed_reappe
     assert tr.revision == kept and tr.status == Status.LOST
 
 
+def test_an_ended_track_s_revision_passes_over_a_last_estimate_the_others_do_not_continue():
+    """A part leaving the view fast is often estimated wrongly on its last frames, cut by the image's edge: the
+    revision of its ended track then starts from the latest refused estimate that earlier ones continue and
+    carries the move over the frames after it, where that run has the part out of the view when it is lost;
+    not where the run leaves the part in view (estimates that agree while it hides), nor from a single
+    estimate before the wrong last one."""
+    from surftrack.geometry import so3_exp
+    from surftrack.track.kalman import PoseKalman
+    from surftrack.track.status import Status
+    from surftrack.track.tracker import _Track
+
+    spec = PartSpec(1, 1, "large_needle_driver", 0, "wrist", np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]]))
+    cov = np.diag([1.0] * 3 + [1e-4] * 3)
+    t0, v = np.array([0.0, 0.0, 80.0]), np.array([100.0, 0.0, -50.0])  # mm, mm/s
+    wrong = (so3_exp(np.radians([50.0, 0.0, 0.0])), t0 + 0.7 * v + np.array([0.0, 0.0, -15.0]), cov)
+
+    def revised(times, out_of_view=lambda R, t: t[0] > 60.0):
+        tr = _Track(spec, TrackConfig())
+        assert isinstance(tr.kf, PoseKalman)
+        tr.kf.init(np.eye(3), t0, 0.0, cov)
+        tr.status = Status.PREDICTED
+        tr.streak = [(ts, (np.eye(3), t0 + ts * v, cov)) for ts in times] + [(0.7, wrong), (0.8, None)]
+        tr.kf.predict(0.9)  # the frame of the loss
+        tr.drop(out_of_view)
+        assert all(s.revised for s in tr.revision)
+        return {round(s.time, 3): s.x[0:3] for s in tr.revision}
+
+    steps = revised([0.4, 0.5, 0.6])
+    assert sorted(steps) == [0.4, 0.5, 0.6, 0.7, 0.8]
+    assert all(np.linalg.norm(steps[ts] - (t0 + ts * v)) < 1.0 for ts in (0.4, 0.5, 0.6, 0.7)), steps
+    assert revised([0.4, 0.5, 0.6], out_of_view=lambda R, t: False) == {}
+    assert revised([0.4, 0.5, 0.6], out_of_view=None) == {}
+    assert revised([0.6]) == {}
+
+
 def test_a_restart_in_hindsight_reaches_one_second_back_and_leaves_out_a_half_turn():
     """The refused estimates a restart in hindsight starts from: at most 1 s back (``RETRO_MAX_S``), and not
     past one turned half a turn from the rest, even where estimates so uncertain in rotation pass the

@@ -26,7 +26,7 @@ import functools
 import math
 import time
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -181,7 +181,8 @@ class _Track:
             self.streak = []
         self.refused = None
 
-    def ended_in_hindsight(self) -> tuple[FilterStep, ...]:
+    def ended_in_hindsight(self, out_of_view: Callable[[np.ndarray, np.ndarray], bool] | None = None
+                           ) -> tuple[FilterStep, ...]:
         """The steps of this track's last frames as a track restarted from the estimates it refused there
         (revised, for the smoother), or none. For a track that ends while the estimator disagrees with it
         (a fast move out of the view, which a constant-velocity track lags behind and its gate then
@@ -189,27 +190,40 @@ class _Track:
         least one) start a filter run, carried over the frames after the last of them as the filter would
         (coasting after the first). The causal run is not changed; the smoother writes these frames from
         that run. A run that stops while the estimates are refused keeps the track: only the track's loss
-        says that it, not the estimates, was wrong."""
+        says that it, not the estimates, was wrong.
+
+        A part cut by the image's edge as it leaves is often estimated wrongly on its last frames: when
+        the last refused estimate continues none before it, the latest one that earlier ones continue
+        starts the run instead, but only where that run, carried to the frame of the loss, has the part
+        out of the view (``out_of_view(R, t)``, the model-to-camera pose in mm: the run explains the loss);
+        elsewhere such a run is more often estimates that agree while the part hides."""
         if not (self.cfg.retro_restart and self.has_pose and isinstance(self.kf, PoseKalman)):
             return ()
-        last = next((k for k in range(len(self.streak) - 1, -1, -1) if self.streak[k][1] is not None), None)
-        if last is None:
-            return ()
-        time_s, (R, t, cov) = self.streak[last]
-        first = agreeing_start(self.streak[:last], R, t, cov, time_s, self.kf.config)
-        if first is None:
+        refused = [k for k in range(len(self.streak) - 1, -1, -1) if self.streak[k][1] is not None]
+        for last in refused:
+            time_s, (R, t, cov) = self.streak[last]
+            first = agreeing_start(self.streak[:last], R, t, cov, time_s, self.kf.config)
+            if first is not None:
+                break
+        else:
             return ()
         kf, steps = refilter(self.kf.config, self.streak[first:last + 1], last_ungated=True)
         for k, (ts, _) in enumerate(self.streak[last + 1:]):
             kf.predict(ts, coast=k > 0)
             steps.append(kf.snapshot())
+        if last != refused[0]:
+            if out_of_view is None or self.kf.time is None:
+                return ()
+            kf.predict(max(self.kf.time, kf.time), coast=len(self.streak) > last + 1)
+            if not out_of_view(*kf.pose):
+                return ()
         return tuple(dataclasses.replace(s, revised=True) for s in steps)
 
-    def drop(self) -> None:
+    def drop(self, out_of_view: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> None:
         """End the track (the part is lost); its last frames may be revised in hindsight
-        (:meth:`ended_in_hindsight`, in ``revision`` for this frame's state). A track dropped again in the
-        same frame (a reappearance that failed) keeps the revision its first drop made."""
-        ended = self.ended_in_hindsight() if self.has_pose else self.revision
+        (:meth:`ended_in_hindsight`, with ``out_of_view``, in ``revision`` for this frame's state). A track
+        dropped again in the same frame (a reappearance that failed) keeps the revision its first drop made."""
+        ended = self.ended_in_hindsight(out_of_view) if self.has_pose else self.revision
         if isinstance(self.kf, PartFilter):
             self.kf.deactivate()
         self.kf = self.new_filter()
@@ -724,7 +738,7 @@ class Tracker:
                 # it is still there (dropping it would restart its filter on every such frame)
                 seen = det is not None and pbox is not None and box_iou(det, pbox) >= cfg.min_iou
                 if pbox is None or (inside < cfg.min_visible and not seen):
-                    tr.drop()
+                    tr.drop(self._out_of_view(tr))
                     tr.info.why_lost = "left the image"
                     pbox = None
             if pbox is None:
@@ -867,8 +881,13 @@ class Tracker:
                 tr.status = Status.PREDICTED
                 tr.info.occluded = tr.occluded
             else:
-                tr.drop()
+                tr.drop(self._out_of_view(tr))
                 tr.info.why_lost = why_lost
+
+    def _out_of_view(self, tr: _Track) -> Callable[[np.ndarray, np.ndarray], bool]:
+        """Whether ``tr``'s part at a pose (R, t mm) is out of the view: less than ``min_visible`` of its
+        projected box inside the image, as a track is dropped for leaving it."""
+        return lambda R, t: projected_box(self.K, R, t, tr.box_vertices, self.size)[1] < self.cfg.min_visible
 
     def _beyond_reach(self, tr: _Track, t: np.ndarray, measured: Sequence[_Track]) -> bool:
         """Whether a part without a track, starting at ``t`` (mm), lies farther from every one of the
