@@ -985,7 +985,13 @@ def test_an_ended_track_s_revision_passes_over_a_last_estimate_the_others_do_not
     t0, v = np.array([0.0, 0.0, 80.0]), np.array([100.0, 0.0, -50.0])  # mm, mm/s
     wrong = (so3_exp(np.radians([50.0, 0.0, 0.0])), t0 + 0.7 * v + np.array([0.0, 0.0, -15.0]), cov)
 
-    def revised(times, out_of_view=lambda R, t: t[0] > 60.0):
+    seen_at: list[np.ndarray] = []
+
+    def leaving(R, t):  # out of the view beyond x = 82 mm: reached only at the frame of the loss (0.9 s)
+        seen_at.append(t.copy())
+        return t[0] > 82.0
+
+    def revised(times, out_of_view=leaving):
         tr = _Track(spec, TrackConfig())
         assert isinstance(tr.kf, PoseKalman)
         tr.kf.init(np.eye(3), t0, 0.0, cov)
@@ -997,11 +1003,23 @@ def test_an_ended_track_s_revision_passes_over_a_last_estimate_the_others_do_not
         return {round(s.time, 3): s.x[0:3] for s in tr.revision}
 
     steps = revised([0.4, 0.5, 0.6])
-    assert sorted(steps) == [0.4, 0.5, 0.6, 0.7, 0.8]
+    assert sorted(steps) == [0.4, 0.5, 0.6, 0.7, 0.8] and len(seen_at) == 1 and seen_at[0][0] > 82.0
     assert all(np.linalg.norm(steps[ts] - (t0 + ts * v)) < 1.0 for ts in (0.4, 0.5, 0.6, 0.7)), steps
     assert revised([0.4, 0.5, 0.6], out_of_view=lambda R, t: False) == {}
     assert revised([0.4, 0.5, 0.6], out_of_view=None) == {}
     assert revised([0.6]) == {}
+    # the tracker's test: the part's projected box (nearly) outside the image, in front of the camera
+    from types import SimpleNamespace
+
+    from surftrack.instruments import load_instrument
+
+    mesh = load_instrument("lnd").parts["wrist"].mesh
+    wrist = _Track(PartSpec(1, 2, "large_needle_driver", 0, "wrist", mesh.vertices, mesh.faces), TrackConfig())
+    K = np.array([[450.0, 0.0, 320.0], [0.0, 450.0, 256.0], [0.0, 0.0, 1.0]])
+    out = Tracker._out_of_view(SimpleNamespace(K=K, size=(640, 512), cfg=TrackConfig()), wrist)
+    assert not out(np.eye(3), np.array([0.0, 0.0, 80.0]))  # in the middle of the image
+    assert out(np.eye(3), np.array([80.0, 0.0, 80.0]))  # 450 px right of the centre: beyond the edge
+    assert not out(np.eye(3), np.array([0.0, 0.0, -80.0]))  # behind the camera: no explanation of a loss
 
 
 def test_a_restart_in_hindsight_reaches_one_second_back_and_leaves_out_a_half_turn():

@@ -15,7 +15,8 @@ real jump and is left out; ``kalman.max_rejections`` in a row restart the track:
 from the first refused estimate the last one continues (``TrackConfig.retro_restart``: the smoother takes
 the new track for the frames the old one was wrong on), else at the last estimate alone (widening the
 prediction, so a smoothed run keeps the track in one piece, :meth:`PoseKalman.restart`). A track that
-ends while its estimates are refused is revised the same way for the smoother
+ends while its estimates are refused is revised the same way for the smoother, or, where the part
+leaves the view, from the latest refused estimate that earlier ones continue
 (:meth:`_Track.ended_in_hindsight`).
 """
 
@@ -214,7 +215,8 @@ class _Track:
         if last != refused[0]:
             if out_of_view is None or self.kf.time is None:
                 return ()
-            kf.predict(max(self.kf.time, kf.time), coast=len(self.streak) > last + 1)
+            if self.kf.time > kf.time:  # the frame of the loss (the streak holds the frames before it)
+                kf.predict(self.kf.time, coast=True)
             if not out_of_view(*kf.pose):
                 return ()
         return tuple(dataclasses.replace(s, revised=True) for s in steps)
@@ -885,9 +887,13 @@ class Tracker:
                 tr.info.why_lost = why_lost
 
     def _out_of_view(self, tr: _Track) -> Callable[[np.ndarray, np.ndarray], bool]:
-        """Whether ``tr``'s part at a pose (R, t mm) is out of the view: less than ``min_visible`` of its
-        projected box inside the image, as a track is dropped for leaving it."""
-        return lambda R, t: projected_box(self.K, R, t, tr.box_vertices, self.size)[1] < self.cfg.min_visible
+        """Whether ``tr``'s part at a pose (R, t mm) is out of the view: in front of the camera with less
+        than ``min_visible`` of its projected box inside the image, as a track is dropped for leaving it (a
+        pose behind the camera explains no loss)."""
+        def out(R: np.ndarray, t: np.ndarray) -> bool:
+            return bool(t[2] > 0.0 and projected_box(self.K, R, t, tr.box_vertices, self.size)[1] < self.cfg.min_visible)
+
+        return out
 
     def _beyond_reach(self, tr: _Track, t: np.ndarray, measured: Sequence[_Track]) -> bool:
         """Whether a part without a track, starting at ``t`` (mm), lies farther from every one of the
