@@ -27,24 +27,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from surftrack.annotate import match_parts
+from surftrack.annotate import best_boxes, match_parts
 from surftrack.eval.metrics import add, diameter_bbox_diagonal
 from surftrack.io.video import read_video_frames
 from surftrack.model.checkpoint import load_checkpoint
 from surftrack.paths import default_model_path
 from surftrack.pose import PoseEstimator
-from surftrack.track import PartState, TrackConfig, Tracker
+from surftrack.track import TrackConfig, Tracker
 from surftrack.track.clip_eval import ClipGroundTruth
-
-
-def _best_boxes(detections: list[dict], known: set[int], min_score: float) -> dict[int, list[tuple]]:
-    """track id -> [(box, score)]: each known part's highest-scoring box of one frame."""
-    best: dict[int, tuple] = {}
-    for d in detections:
-        pid = d["part_id"]
-        if pid in known and d["score"] >= min_score and (pid not in best or d["score"] > best[pid][1]):
-            best[pid] = (tuple(d["bbox"]), d["score"])
-    return {pid: [b] for pid, b in best.items()}
 
 
 def refine_clip(clip: Path, model, train_cfg, cfg: TrackConfig, every: int) -> dict[str, dict]:
@@ -57,11 +47,12 @@ def refine_clip(clip: Path, model, train_cfg, cfg: TrackConfig, every: int) -> d
     gt = ClipGroundTruth(clip / "gt.json")
     est = PoseEstimator(model, cfg.estimator_preset(), crop_size=train_cfg.data.crop, box_scale=train_cfg.data.scale)
     known = {s.track_id for s in specs}
+    limits = {s.name: 0.1 * diameter_bbox_diagonal(s.vertices) for s in specs}  # ADD-10, SurgRIPE diameter
     out: dict[str, dict] = {}
     for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
         if index % every:
             continue
-        boxes = _best_boxes(per_frame.get(index, []), known, cfg.min_box_score)
+        boxes = {pid: [b] for pid, b in best_boxes(per_frame.get(index, []), known, cfg.min_box_score).items()}
         tracker = Tracker(est, K, (frame.shape[1], frame.shape[0]), specs, cfg)
         try:
             first = tracker.step(frame, t_s, boxes)
@@ -74,16 +65,11 @@ def refine_clip(clip: Path, model, train_cfg, cfg: TrackConfig, every: int) -> d
                 continue
             row = out.setdefault(a.spec.name, {"frames": 0, "hits": [0, 0], "dz": ([], [])})
             row["frames"] += 1
-            limit = 0.1 * diameter_bbox_diagonal(a.spec.vertices)
             for k, s in enumerate((a, b)):
-                if _posed(s):
-                    row["hits"][k] += add(s.R, s.t, Rg, tg, a.spec.vertices) < limit
+                if s.R is not None:
+                    row["hits"][k] += add(s.R, s.t, Rg, tg, a.spec.vertices) < limits[a.spec.name]
                     row["dz"][k].append(abs(float(s.t[2] - tg[2])))
     return out
-
-
-def _posed(s: PartState) -> bool:
-    return s.R is not None and s.t is not None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -451,6 +451,18 @@ def annotate_video(video: str | Path, boxes: str | Path, opts: AnnotateOptions |
             "outputs": outputs}
 
 
+def best_boxes(detections: Sequence[Mapping], known, min_score: float) -> dict[int, tuple[tuple, float]]:
+    """One frame's detections (det.json records: ``part_id``, ``bbox``, ``score``) reduced to each known part's
+    highest-scoring box at ``min_score`` or above: track id -> (box (x, y, w, h), score). ``known``: the
+    track ids to keep (any container)."""
+    best: dict[int, tuple[tuple, float]] = {}
+    for d in detections:
+        pid = d["part_id"]
+        if pid in known and d["score"] >= min_score and (pid not in best or d["score"] > best[pid][1]):
+            best[pid] = (tuple(d["bbox"]), d["score"])
+    return best
+
+
 def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: TrackConfig, device: str | None = None,
                     instruments: InstrumentRegistry = BUILTIN) -> tuple[dict, dict, float]:
     """Per-frame estimation (no temporal model) of a synthetic clip (``surftrack synth-clip``: video.mp4,
@@ -478,11 +490,7 @@ def score_per_frame(clip: str | Path, boxes: str | Path, model, train_cfg, cfg: 
     score = TrackScore(ClipGroundTruth(clip / "gt.json"), instruments=tools)
     t0, n = time.perf_counter(), 0
     for index, (t_s, frame) in enumerate(read_video_frames(clip / "video.mp4")):
-        best: dict[int, tuple] = {}
-        for d in per_frame.get(index, []):
-            if d["part_id"] in specs and d["score"] >= cfg.min_box_score and (
-                    d["part_id"] not in best or d["score"] > best[d["part_id"]][1]):
-                best[d["part_id"]] = (tuple(d["bbox"]), d["score"])
+        best = best_boxes(per_frame.get(index, []), specs, cfg.min_box_score)
         pids = sorted(best)
         groups = [specs[p].instance for p in pids]
         res = (est.estimate(frame, [(specs[p].obj_id, best[p][0]) for p in pids], K,
